@@ -1,0 +1,114 @@
+"""``matopt``: the command line client of matoptd.
+
+Every failure ends in one line on stderr (``matopt: error: NOT_FOUND: job 'jobs/x' not found``)
+and a non-zero exit status, never a traceback: 1 for errors (from the daemon or local), 2 for
+a wrong command line, 130 for Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+import grpc
+
+from matopt import __version__
+from matopt.bundle import BundleError
+from matopt.client import ClientError, error_message
+from matopt.v1 import matopt_pb2 as pb
+from matopt.cli.output import emit_json, fields
+from matopt.cli.session import Group, Settings, connected, root_options
+
+
+def _fail(message: str, code: int) -> int:
+    click.echo(f"matopt: error: {message}", err=True)
+    return code
+
+
+def _usage_message(exc: click.UsageError) -> str:
+    text = " ".join(exc.format_message().split())
+    if exc.ctx is not None:
+        text += f" (see '{exc.ctx.command_path} --help')"
+    return text
+
+
+class Main(Group):
+    """The ``matopt`` group; its :meth:`main` turns every exception into one line and a status.
+
+    Doing it here, rather than around the call in :func:`main`, also covers callers that run
+    the group directly (click's test runner, ``python -m``).
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        try:
+            result = super().main(args, prog_name or "matopt", complete_var,
+                                  standalone_mode=False, **extra)
+            code = result if isinstance(result, int) else 0
+        except click.UsageError as exc:
+            code = _fail(_usage_message(exc), exc.exit_code)
+        except click.ClickException as exc:
+            code = _fail(exc.format_message(), exc.exit_code)
+        except click.Abort:
+            code = _fail("interrupted", 130)
+        except KeyboardInterrupt:
+            code = _fail("interrupted", 130)
+        except grpc.RpcError as exc:
+            code = _fail(error_message(exc), 1)
+        except (ClientError, BundleError) as exc:
+            code = _fail(str(exc), 1)
+        except OSError as exc:
+            where = f"'{exc.filename}': " if exc.filename else ""
+            code = _fail(f"{where}{exc.strerror or exc}", 1)
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+
+@click.group(cls=Main, context_settings={"help_option_names": ["-h", "--help"]})
+@root_options
+@click.version_option(__version__, prog_name="matopt")
+@click.pass_context
+def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) -> None:
+    """Material reconstruction with matoptd: load scenes, run and follow optimization jobs.
+
+    Connection options go before the command (matopt --server H:P job list) or after it.
+    SCENE and JOB are full names (scenes/abc, jobs/abc) or bare ids (abc).
+    """
+    ctx.obj = Settings(server=server, token=token or None, tls_ca=tls_ca or None)
+
+
+@cli.command()
+@click.option("--json", "as_json", is_flag=True, help="print the ServerInfo as JSON")
+def info(as_json: bool) -> None:
+    """What the daemon runs: version, Mitsuba variant, device, your user, losses, integrators."""
+    client = connected()
+    info = client.info or client.server.GetServerInfo(pb.GetServerInfoRequest())
+    if as_json:
+        emit_json(info)
+        return
+    fields({
+        "server": client.target,
+        "version": info.version,
+        "variant": info.variant,
+        "device": info.device,
+        "user": info.user,
+        "losses": ", ".join(info.losses),
+        "integrators": ", ".join(info.integrators),
+        "capabilities": ", ".join(info.capabilities),
+    })
+
+
+def _register() -> None:
+    from matopt.cli import demo, job, scene
+
+    cli.add_command(scene.scene)
+    cli.add_command(job.job)
+    cli.add_command(demo.demo)
+
+
+_register()
+
+
+def main() -> None:
+    """The console script ``matopt``."""
+    cli.main(prog_name="matopt")

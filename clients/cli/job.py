@@ -1,0 +1,275 @@
+"""``matopt job ...``: start optimization jobs, follow them, control them, export results."""
+
+from __future__ import annotations
+
+import os
+import uuid
+from pathlib import Path
+from typing import Sequence
+
+import click
+
+from matopt import client as mc
+from matopt.cli.output import (emit_json, fields, json_option, note, number, table, timestamp,
+                                uploading)
+from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
+from matopt.cli.progress import JobProgress, describe, follow, outcome
+from matopt.cli.session import Group, connected
+from matopt.export import WHICH, export_job
+from matopt.v1 import matopt_pb2 as pb
+
+LOSSES = {"mse": pb.MSE, "dual_buffer": pb.DUAL_BUFFER}
+SCHEDULES = {"cosine": pb.COSINE, "constant": pb.CONSTANT}
+STATES = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]
+
+
+@click.group(cls=Group)
+def job() -> None:
+    """Jobs: optimizations of a scene's parameters against reference images."""
+
+
+def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.ParameterSpec]:
+    """One ParameterSpec per --param, with only the fields the user set.
+
+    Unset ``optional`` fields stay absent so the daemon applies the parameter's own defaults;
+    a --lr/--range/--init for a key that is not a --param is a mistake on the command line.
+    """
+    specs = {key: pb.ParameterSpec(key=key) for key in keys}
+
+    def spec(key: str, option: str) -> pb.ParameterSpec:
+        if key not in specs:
+            raise click.BadParameter(f"'{key}' is not one of the --param keys", param_hint=option)
+        return specs[key]
+
+    for key, rate in rates:
+        if key is not None:
+            spec(key, "--lr").learning_rate = rate
+    for key, low, high in ranges:
+        s = spec(key, "--range")
+        if low is not None:
+            s.min = low
+        if high is not None:
+            s.max = high
+    for arg in inits:
+        s = spec(arg.key, "--init")
+        del s.initial_value[:]
+        s.initial_value.extend(arg.values)
+    return list(specs.values())
+
+
+def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]]
+                      ) -> list[pb.Reference]:
+    """References for the given images; a ``blobs/<sha256>`` already on the daemon is reused."""
+    local = [image for _, image in refs if not _is_blob(image)]
+    digests = dict(zip(local, mc.upload_files(client, local, uploading)))
+    out = []
+    for sensor, image in refs:
+        blob = image if _is_blob(image) else mc.blob_name(digests[image])
+        ref = pb.Reference(blob=blob, filename=os.path.basename(image))
+        if sensor is not None:
+            ref.sensor = sensor
+        out.append(ref)
+    return out
+
+
+def _is_blob(image: str) -> bool:
+    return image.startswith("blobs/") and not os.path.exists(image)
+
+
+@job.command()
+@click.argument("scene", type=SCENE)
+@click.option("--ref", "refs", multiple=True, required=True, type=ReferenceImage(),
+              help="reference image (PNG, JPEG, EXR) for the next sensor, or N=IMAGE for "
+                   "sensor N; IMAGE may also be blobs/<sha256> (repeatable)")
+@click.option("--param", "keys", multiple=True, required=True, metavar="KEY",
+              help="a parameter to optimize, see 'matopt scene params' (repeatable)")
+@click.option("--lr", "rates", multiple=True, type=LearningRate(),
+              help="learning rate of one parameter (KEY=RATE), or of all without their own")
+@click.option("--range", "ranges", multiple=True, type=Range(),
+              help="legal range of a parameter; a bound may be left empty")
+@click.option("--init", "inits", multiple=True, type=Values(),
+              help="start value of a parameter instead of the scene's")
+@click.option("--loss", type=click.Choice(sorted(LOSSES), case_sensitive=False),
+              help="image loss [daemon default: mse]")
+@click.option("--schedule", type=click.Choice(sorted(SCHEDULES), case_sensitive=False),
+              help="learning-rate schedule [daemon default: cosine]")
+@click.option("--iterations", type=int, help="optimization steps [daemon default: 100]")
+@click.option("--spp", type=int, help="samples per pixel of each step [daemon default: 4]")
+@click.option("--min-error", type=float,
+              help="stop once the loss is below this [daemon default: 0.001]")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")
+@click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
+@json_option
+def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedule: str | None,
+          iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
+          wait: bool, as_json: bool) -> None:
+    """Start optimizing SCENE's parameters to match the reference images; prints the job name.
+
+    Options left out take the daemon's defaults (shown by 'matopt job status'). With --wait,
+    the exit status is non-zero if the job fails or is cancelled.
+    """
+    given = {"iterations": iterations, "spp": spp, "min_error": min_error, "seed": seed,
+             "loss": LOSSES[loss.lower()] if loss else None,
+             "schedule": SCHEDULES[schedule.lower()] if schedule else None,
+             "learning_rate": next((rate for key, rate in rates if key is None), None)}
+    spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
+                      **{k: v for k, v in given.items() if v is not None})
+    for _, image in refs:
+        if not _is_blob(image) and not os.path.isfile(image):
+            raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
+    client = connected()
+    spec.references.extend(upload_references(client, refs))
+    created = client.jobs.CreateJob(pb.CreateJobRequest(spec=spec, request_id=str(uuid.uuid4())))
+    if as_json and not wait:
+        emit_json(created)
+    elif not as_json:
+        click.echo(created.name)
+    if not wait:
+        return
+    final = wait_with_progress(client, created.name)
+    if as_json:
+        emit_json(final)
+    outcome(final)
+
+
+def wait_with_progress(client: mc.Client, name: str) -> pb.Job:
+    """Follows the job with a progress line on stderr; returns it in its final state."""
+    progress = JobProgress()
+    try:
+        return follow(client, name, progress)
+    finally:
+        progress.close()
+
+
+@job.command("list")
+@click.option("--state", type=click.Choice(STATES, case_sensitive=False),
+              help="only jobs in this state")
+@json_option
+def list_jobs(state: str | None, as_json: bool) -> None:
+    """Your jobs, newest state first as the daemon orders them."""
+    client = connected()
+    request = pb.ListJobsRequest(state=pb.State.Value(state.upper()) if state else 0)
+    jobs = mc.list_all(client.jobs.ListJobs, request, "jobs")
+    if as_json:
+        emit_json(pb.ListJobsResponse(jobs=jobs))
+        return
+    table(["NAME", "STATE", "ITERATION", "LOSS", "BEST", "SCENE", "CREATED"],
+          [[j.name, mc.state_name(j.state), f"{j.iteration}/{j.spec.iterations}",
+            number(j.loss), number(j.best_loss), j.spec.scene, timestamp(j.create_time)]
+           for j in jobs])
+
+
+@job.command()
+@click.argument("name", metavar="JOB", type=JOB)
+@json_option
+def status(name: str, as_json: bool) -> None:
+    """A job's state, progress and settings (with the daemon's defaults filled in)."""
+    j = connected().jobs.GetJob(pb.GetJobRequest(name=name))
+    if as_json:
+        emit_json(j)
+        return
+    spec = j.spec
+    fields({
+        "name": j.name,
+        "state": mc.state_name(j.state) + (f" ({j.stop_reason})" if j.stop_reason else ""),
+        "error": j.error or None,
+        "scene": spec.scene,
+        "iteration": f"{j.iteration}/{spec.iterations}",
+        "loss": number(j.loss),
+        "best loss": f"{number(j.best_loss)} (iteration {j.best_iteration})",
+        "elapsed": f"{j.elapsed_seconds:.1f} s",
+        "parameters": ", ".join(p.key for p in spec.parameters),
+        "references": ", ".join(r.filename or r.blob for r in spec.references),
+        "loss function": mc.enum_name(pb.Loss, spec.loss),
+        "spp": spec.spp,
+        "min error": number(spec.min_error),
+        "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),
+        "sensors": ", ".join(map(str, j.sensors_rendered)),
+        "skipped steps": j.skipped_steps,
+        "non-finite gradients": j.nonfinite_gradient_steps,
+        "resumed from": j.resumed_from or None,
+        "owner": j.owner,
+        "created": timestamp(j.create_time),
+        "updated": timestamp(j.update_time),
+    })
+
+
+@job.command("watch")
+@click.argument("name", metavar="JOB", type=JOB)
+@click.option("--json", "as_json", is_flag=True,
+              help="one JSON object per event and line (the JobEvent)")
+def watch_job(name: str, as_json: bool) -> None:
+    """Print the job's events, one line each, until it ends; non-zero exit if it fails."""
+    total = 0
+
+    def show(event: pb.JobEvent) -> None:
+        nonlocal total
+        if event.HasField("job"):
+            total = event.job.spec.iterations
+        if as_json:
+            emit_json(event, compact=True)
+        else:
+            click.echo(describe(event, total))
+
+    outcome(follow(connected(), name, show))
+
+
+def _control(verb: str, rpc: str, request_type, doc: str) -> None:
+    """pause/resume/cancel: the same command shape around a different RPC."""
+
+    @job.command(verb, help=doc)
+    @click.argument("name", metavar="JOB", type=JOB)
+    @json_option
+    def command(name: str, as_json: bool) -> None:
+        j = getattr(connected().jobs, rpc)(request_type(name=name))
+        if as_json:
+            emit_json(j)
+        else:
+            click.echo(f"{j.name} {mc.state_name(j.state)}")
+
+
+_control("pause", "PauseJob", pb.PauseJobRequest,
+         "Pause a job at its next iteration; prints its state (watch it to see it change).")
+_control("resume", "ResumeJob", pb.ResumeJobRequest,
+         "Resume a paused or interrupted job.")
+_control("cancel", "CancelJob", pb.CancelJobRequest,
+         "Cancel a job at its next iteration; its results so far are kept.")
+
+
+@job.command()
+@click.argument("name", metavar="JOB", type=JOB)
+def delete(name: str) -> None:
+    """Delete a job and its results."""
+    connected().jobs.DeleteJob(pb.DeleteJobRequest(name=name))
+    note(f"deleted {name}")
+
+
+@job.command()
+@click.argument("name", metavar="JOB", type=JOB)
+@json_option
+def history(name: str, as_json: bool) -> None:
+    """Loss per iteration, with the optimizing time at which it was reached."""
+    response = connected().jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
+    if as_json:
+        emit_json(response)
+        return
+    table(["ITERATION", "SECONDS", "LOSS"],
+          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)] for r in response.iterations])
+
+
+@job.command("export")
+@click.argument("name", metavar="JOB", type=JOB)
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="directory to write into (created if needed)")
+@click.option("--which", type=click.Choice(sorted(WHICH), case_sensitive=False), default="best",
+              show_default=True, help="the lowest-loss iteration, or the last one")
+def export(name: str, out_dir: str, which: str) -> None:
+    """Write parameters.json, initial/optimized/reference images and history.csv to --out.
+
+    Prints the files written, one per line.
+    """
+    done = export_job(connected(), name, Path(out_dir), which.lower())
+    for path in done.files:
+        click.echo(str(path))
+    note(f"{name}: {which} iteration {done.result.iteration}, "
+         f"loss {number(done.result.loss)}")

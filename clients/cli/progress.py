@@ -1,0 +1,131 @@
+"""Following a running job on the terminal, and turning how it ended into an exit status.
+
+Shared by ``job start --wait``, ``job watch`` and ``demo`` so that all three report progress and
+failures the same way: a job that FAILED or was CANCELLED makes the command exit non-zero.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Callable
+
+import click
+
+from matopt import client as mc
+from matopt.cli.output import note, number
+from matopt.v1 import matopt_pb2 as pb
+
+BAR_WIDTH = 24
+
+
+class Interrupted(click.ClickException):
+    """Ctrl-C while following a job: the job itself keeps running on the daemon."""
+
+    exit_code = 130
+
+
+class JobProgress:
+    """Shows a job's progress on stderr while it runs.
+
+    On a terminal one line rewrites itself (bar, iteration/total, loss); in a log, a line per
+    state change and per tenth of the iterations, so CI logs stay short but show movement.
+    """
+
+    def __init__(self, interactive: bool | None = None) -> None:
+        self.interactive = sys.stderr.isatty() if interactive is None else interactive
+        self.name = ""
+        self.state = ""
+        self.total = 0
+        self.iteration = 0
+        self.loss: float | None = None
+        self.best: float | None = None
+        self.seconds = 0.0
+        self._width = 0
+        self._last_tenth = -1
+
+    def __call__(self, event: pb.JobEvent) -> None:
+        if event.HasField("job"):
+            job = event.job
+            changed = mc.state_name(job.state) != self.state
+            self.name, self.state = job.name, mc.state_name(job.state)
+            self.total, self.iteration = job.spec.iterations, job.iteration
+            self.seconds = job.elapsed_seconds
+            if job.iteration:
+                self.loss = job.loss
+                self.best = job.best_loss
+            if changed and not self.interactive:
+                self._last_tenth = self._tenth()
+                note(self.line())
+        else:
+            record = event.iteration
+            self.iteration, self.loss, self.seconds = record.iteration, record.loss, record.seconds
+            self.best = record.loss if self.best is None else min(self.best, record.loss)
+            tenth = self._tenth()
+            if not self.interactive and tenth != self._last_tenth:
+                self._last_tenth = tenth
+                note(self.line())
+        if self.interactive:
+            text = self.line()
+            click.echo("\r" + text.ljust(self._width), nl=False, err=True)
+            self._width = len(text)
+
+    def _tenth(self) -> int:
+        return self.iteration * 10 // self.total if self.total else 0
+
+    def line(self) -> str:
+        parts = [self.name, self.state]
+        if self.total:
+            done = min(self.iteration, self.total) * BAR_WIDTH // self.total
+            parts.append("[" + "#" * done + "." * (BAR_WIDTH - done) + "]")
+        parts.append(f"{self.iteration}/{self.total}")
+        if self.loss is not None:
+            parts.append(f"loss {number(self.loss)}")
+        if self.best is not None:
+            parts.append(f"best {number(self.best)}")
+        parts.append(f"{self.seconds:.1f} s")
+        return "  ".join(parts)
+
+    def close(self) -> None:
+        if self.interactive and self._width:
+            click.echo(err=True)
+            self._width = 0
+
+
+def describe(event: pb.JobEvent, total: int = 0) -> str:
+    """One line per event, for ``job watch``."""
+    if event.HasField("job"):
+        job = event.job
+        text = (f"{job.name} {mc.state_name(job.state)} iteration {job.iteration}/"
+                f"{job.spec.iterations} loss {number(job.loss)} best {number(job.best_loss)} "
+                f"(iteration {job.best_iteration})")
+        if job.error:
+            text += f": {job.error}"
+        return text
+    record = event.iteration
+    of = f"/{total}" if total else ""
+    return f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+
+
+def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:
+    """Waits for the job to end; Ctrl-C leaves it running and says how to stop it."""
+    try:
+        return mc.wait(client, name, on_event)
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted; {name} keeps running on the daemon "
+                          f"('matopt job cancel {name}' stops it)") from None
+
+
+def outcome(job: pb.Job) -> None:
+    """Reports how the job ended; raises (exit status 1) unless it SUCCEEDED."""
+    state = mc.state_name(job.state)
+    if job.state == pb.SUCCEEDED:
+        reason = f" ({job.stop_reason})" if job.stop_reason else ""
+        note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}; "
+             f"best loss {number(job.best_loss)} at iteration {job.best_iteration}")
+        return
+    if job.state == pb.FAILED:
+        raise click.ClickException(f"job '{job.name}' FAILED: {job.error or 'no reason given'}")
+    if job.state == pb.CANCELLED:
+        raise click.ClickException(f"job '{job.name}' was cancelled")
+    hint = f" ('matopt job resume {job.name}' continues it)" if job.state == pb.INTERRUPTED else ""
+    raise click.ClickException(f"job '{job.name}' stopped in state {state}{hint}")

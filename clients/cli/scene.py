@@ -1,0 +1,165 @@
+"""``matopt scene ...``: load scene bundles, list them, inspect parameters, render previews."""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import click
+
+from matopt import client as mc
+from matopt.cli.output import (emit_json, fields, json_option, message_dict, note, number, table,
+                                timestamp, uploading, values, warn)
+from matopt.cli.params import SCENE, Assignment, Values, nonzero
+from matopt.cli.session import Group, connected
+from matopt.export import download_images
+from matopt.v1 import matopt_pb2 as pb
+
+
+
+@click.group(cls=Group)
+def scene() -> None:
+    """Scenes: a Mitsuba XML and the files it references, loaded on the daemon."""
+
+
+def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, str],
+                 display_name: str = "") -> pb.Scene:
+    """Uploads the bundle (none for the built-in Cornell box) and creates the scene.
+
+    A fresh request_id per call lets the daemon recognise a retried request as the same one.
+    """
+    request = pb.CreateSceneRequest(overrides=overrides, request_id=str(uuid.uuid4()),
+                                    display_name=display_name)
+    if scene_xml:
+        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading)
+        request.main_file = main_file
+        request.files.extend(files)
+    return client.scenes.CreateScene(request)
+
+
+@scene.command()
+@click.argument("scene_xml", metavar="SCENE.xml", required=False)
+@click.option("--cornell-box", is_flag=True, help="the built-in Cornell box instead of a file")
+@click.option("--set", "overrides", multiple=True, type=Assignment(),
+              help="an XML <default> value, e.g. --set resx=256 (repeatable)")
+@click.option("--name", "display_name", default="", help="display name (default: file name)")
+@json_option
+def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, str], ...],
+         display_name: str, as_json: bool) -> None:
+    """Upload SCENE.xml with the files it references and load it; prints the scene's name.
+
+    Files the daemon already has (by content) are not uploaded again.
+    """
+    if bool(scene_xml) == cornell_box:
+        raise click.UsageError("give either SCENE.xml or --cornell-box")
+    created = create_scene(connected(), scene_xml, dict(overrides), display_name)
+    for warning in created.warnings:
+        warn(warning)
+    if as_json:
+        emit_json(created)
+    else:
+        click.echo(created.name)
+
+
+@scene.command("list")
+@json_option
+def list_scenes(as_json: bool) -> None:
+    """The scenes you have loaded."""
+    client = connected()
+    scenes = mc.list_all(client.scenes.ListScenes, pb.ListScenesRequest(), "scenes")
+    if as_json:
+        emit_json(pb.ListScenesResponse(scenes=scenes))
+        return
+    table(["NAME", "DISPLAY NAME", "SENSORS", "PARAMETERS", "CREATED"],
+          [[s.name, s.display_name, len(s.sensors), s.parameter_count, timestamp(s.create_time)]
+           for s in scenes])
+
+
+@scene.command()
+@click.argument("name", metavar="SCENE", type=SCENE)
+@json_option
+def show(name: str, as_json: bool) -> None:
+    """A scene's sensors, overrides and files."""
+    s = connected().scenes.GetScene(pb.GetSceneRequest(name=name))
+    if as_json:
+        emit_json(s)
+        return
+    fields({
+        "name": s.name,
+        "display name": s.display_name,
+        "main file": s.main_file or "(built-in Cornell box)",
+        "created": timestamp(s.create_time),
+        "parameters": s.parameter_count,
+        "media": "yes" if s.has_media else "no",
+        "overrides": ", ".join(f"{k}={v}" for k, v in sorted(s.overrides.items())),
+        "sensors": ", ".join(f"{x.index}:{x.id or '-'} {x.width}x{x.height}" for x in s.sensors),
+        "files": len(s.files),
+    })
+    for warning in s.warnings:
+        warn(warning)
+
+
+@scene.command()
+@click.argument("name", metavar="SCENE", type=SCENE)
+def delete(name: str) -> None:
+    """Delete a scene."""
+    connected().scenes.DeleteScene(pb.DeleteSceneRequest(name=name))
+    note(f"deleted {name}")
+
+
+@scene.command()
+@click.argument("name", metavar="SCENE", type=SCENE)
+@json_option
+def params(name: str, as_json: bool) -> None:
+    """The parameters a job may optimize, with their ranges and default learning rates."""
+    parameters = connected().scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=name)).parameters
+    if as_json:
+        emit_json(pb.ListSceneParametersResponse(parameters=parameters))
+        return
+    noted = any(p.discontinuous for p in parameters)  # gradients need a projective integrator
+    table(["KEY", "KIND", "SHAPE", "VALUE", "MIN", "MAX", "LR"] + (["NOTE"] if noted else []),
+          [[p.key, mc.enum_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)), values(p.value),
+            number(p.min), number(p.max), number(p.default_learning_rate)]
+           + (["discontinuous" if p.discontinuous else ""] if noted else [])
+           for p in parameters])
+
+
+def parameter_values(client: mc.Client, args) -> list[pb.ParameterValue]:
+    """``--set-param`` values as the API wants them; a ``KEY=@file.npy`` is uploaded first."""
+    out = []
+    for arg in args:
+        if arg.npy is not None:
+            blob = mc.blob_name(mc.upload_file(client, arg.npy, uploading))
+            out.append(pb.ParameterValue(key=arg.key, blob=blob))
+        else:
+            out.append(pb.ParameterValue(key=arg.key, value=arg.values))
+    return out
+
+
+@scene.command()
+@click.argument("name", metavar="SCENE", type=SCENE)
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="directory for the images (sensor<i>_render.png / .exr)")
+@click.option("--spp", type=int, callback=nonzero("--spp"),
+              help="samples per pixel [daemon default: 64]")
+@click.option("--set-param", "overrides", multiple=True, type=Values(npy=True),
+              help="render with this value instead of the scene's: KEY=v1,v2,... or "
+                   "KEY=@values.npy (repeatable)")
+@click.option("--sensor", "sensors", multiple=True, type=int,
+              help="render only this sensor index (repeatable) [default: all]")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=None, help="random seed")
+@json_option
+def render(name: str, out_dir: str, spp: int | None, overrides, sensors: tuple[int, ...],
+           seed: int | None, as_json: bool) -> None:
+    """Render the scene's sensors and download the images (PNG for viewing, EXR linear)."""
+    client = connected()
+    request = pb.RenderSceneRequest(name=name, parameters=parameter_values(client, overrides),
+                                    spp=spp or 0, sensors=sensors, seed=seed or 0)
+    response = client.scenes.RenderScene(request)
+    written = download_images(client, response.images, Path(out_dir))
+    if as_json:
+        emit_json({**message_dict(response), "files": [str(p) for p in written]})
+    else:
+        for path in written:
+            click.echo(str(path))

@@ -1,0 +1,36 @@
+"""Choosing the differentiable integrator from the scene and the selected parameters, so a job
+pays only for what it needs, and saying why."""
+
+from __future__ import annotations
+
+import re
+
+import mitsuba as mi
+
+from .scene import has_media
+
+DEFAULT_MAX_DEPTH = 8
+_GEOMETRY = ("vertex_positions", "to_world")
+
+
+def max_depth(scene: mi.Scene) -> tuple[int, str]:
+    """The scene's own integrator depth, so the optimized image matches the scene's look."""
+    m = re.search(r"max_depth\s*=\s*(-?\d+)", str(scene.integrator()))
+    if m:
+        return int(m.group(1)), "the scene's"
+    return DEFAULT_MAX_DEPTH, "default"
+
+
+def choose(scene: mi.Scene, selected: list[str]) -> tuple[mi.Integrator, str, str]:
+    """(integrator, name, reason)."""
+    depth, origin = max_depth(scene)
+    geometry = [k for k in selected if k.endswith(_GEOMETRY)]
+    if has_media(scene):
+        name, why = "prbvolpath", "the scene has participating media"
+    elif geometry:
+        name, why = "prb_projective", (f"{geometry[0]} moves visibility edges, which needs "
+                                       "projective sampling")
+    else:
+        name, why = "prb", "surface materials only: prb is the cheapest unbiased choice"
+    integrator = mi.load_dict({"type": name, "max_depth": depth})
+    return integrator, name, f"{why}; max_depth {depth} ({origin})"

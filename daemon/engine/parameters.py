@@ -1,0 +1,125 @@
+"""What a scene's differentiable parameters are: kind, shape, legal range, learning rate, and
+conversion between Mitsuba values and the API's flat float lists.
+
+Ranges follow physical validity, keyed by the property name (the last component of the key
+that is not ``value`` or ``data``): reflectances and weights live in [0, 1], an index of
+refraction of a dielectric stays above 1, radiance and extinction are non-negative and
+unbounded. Flat lists follow ``dr.ravel`` order (RGB interleaved per entry) so that a value
+read by ``flat()`` and written back by ``assign()`` is the same value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from matopt.v1 import matopt_pb2 as pb
+
+INF = math.inf
+DEFAULT_LEARNING_RATE = 0.03   # the thesis's Adam learning rate
+SMALL = 64                     # parameters up to this many components travel inline
+
+# An eta of exactly 1 makes a dielectric interface vanish (no gradient, divisions by eta - 1).
+ETA_MIN = 1.001
+
+_UNIT = {"reflectance", "base_color", "albedo", "diffuse_reflectance", "specular_reflectance",
+         "specular_transmittance", "transmittance", "roughness", "alpha", "alpha_u", "alpha_v",
+         "spec_trans", "metallic", "specular", "sheen", "sheen_tint", "spec_tint", "clearcoat",
+         "clearcoat_gloss", "flatness", "anisotropic", "opacity", "weight", "diff_trans",
+         "vertex_color", "color"}
+_NON_NEGATIVE = {"radiance", "irradiance", "intensity", "sigma_t", "sigma_a", "sigma_s",
+                 "scale", "k", "density"}
+
+
+@dataclass(frozen=True)
+class Info:
+    key: str
+    kind: int
+    shape: tuple[int, ...]
+    lo: float
+    hi: float
+    discontinuous: bool
+
+
+def property_name(key: str) -> str:
+    parts = [p for p in key.split(".") if p not in ("value", "data")]
+    return parts[-1] if parts else key
+
+
+def legal_range(key: str) -> tuple[float, float]:
+    name = property_name(key)
+    if name == "eta":
+        # `obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's
+        # complex IOR is a texture (`obj.eta.value`) and only needs to be non-negative.
+        return (0.0, INF) if key.endswith(".eta.value") else (ETA_MIN, 4.0)
+    if name in _UNIT:
+        return 0.0, 1.0
+    if name in _NON_NEGATIVE:
+        return 0.0, INF
+    if name == "g":
+        return -0.999, 0.999
+    return -INF, INF
+
+
+def kind_and_shape(key: str, value) -> tuple[int, tuple[int, ...]] | None:
+    """The API kind of a traversed value, or None when it cannot be optimized."""
+    if not (dr.is_diff_v(value) and dr.is_float_v(value)):
+        return None  # Python scalars, ScalarVector2u film sizes, integer arrays, 8-bit textures
+    if dr.is_tensor_v(value):
+        shape = tuple(int(s) for s in value.shape)
+        return (pb.VOLUME_GRID if len(shape) == 4 else pb.TEXTURE), shape
+    if dr.is_matrix_v(value):
+        return pb.TRANSFORM, (4, 4)
+    name = type(value).__name__
+    if name.startswith("Color") or (dr.depth_v(value) > 1 and len(value) == 3
+                                    and dr.width(value) == 1):
+        return pb.RGB, (3,)
+    width = dr.width(value) * (len(value) if dr.depth_v(value) > 1 else 1)
+    if "vertex" in key:
+        return pb.VERTEX_ARRAY, (width,)
+    return (pb.SCALAR, ()) if width == 1 else (pb.VECTOR, (width,))
+
+
+def describe(params: mi.SceneParameters) -> list[Info]:
+    """The differentiable parameters of a traversed scene, in traversal order."""
+    infos = []
+    for key in params.keys():
+        flags = params.flags(key)
+        if flags & int(mi.ParamFlags.NonDifferentiable) or flags & int(mi.ParamFlags.ReadOnly):
+            continue
+        ks = kind_and_shape(key, params[key])
+        if ks is None:
+            continue
+        lo, hi = legal_range(key)
+        infos.append(Info(key, ks[0], ks[1], lo, hi,
+                          bool(flags & int(mi.ParamFlags.Discontinuous))))
+    return infos
+
+
+def flat(value) -> np.ndarray:
+    """A Mitsuba value as a flat float32 array."""
+    if dr.is_tensor_v(value):
+        return np.asarray(value, dtype=np.float32).ravel()
+    return np.asarray(dr.ravel(dr.detach(value)), dtype=np.float32).ravel()
+
+
+def assign(template, values: np.ndarray):
+    """A value of the template's type (and shape) holding ``values`` (flat, ravel order)."""
+    values = np.asarray(values, dtype=np.float32).ravel()
+    expected = int(np.prod(template.shape)) if dr.is_tensor_v(template) else len(flat(template))
+    if values.size != expected:
+        raise ValueError(f"expected {expected} values, got {values.size}")
+    if dr.is_tensor_v(template):
+        return type(template)(values.reshape(template.shape))
+    return dr.unravel(type(template), mi.Float(values))
+
+
+def to_proto(info: Info, value, learning_rate: float = DEFAULT_LEARNING_RATE) -> pb.Parameter:
+    v = flat(value)
+    return pb.Parameter(key=info.key, kind=info.kind, shape=list(info.shape),
+                        value=v.tolist() if v.size <= SMALL else [], min=info.lo, max=info.hi,
+                        default_learning_rate=learning_rate, discontinuous=info.discontinuous)

@@ -1,0 +1,47 @@
+"""Loading a prepared scene and describing what a client needs to know about it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mitsuba as mi
+
+from ..errors import InvalidArgument
+from . import parameters
+
+
+@dataclass
+class Description:
+    sensors: list[tuple[str, int, int]]  # (id, width, height)
+    has_media: bool
+    parameters: list[parameters.Info]
+
+
+def load(loadable: Path, overrides: dict[str, str], display: str) -> mi.Scene:
+    """Loads the XML; Mitsuba's own message (with the file and the offending tag) on failure.
+
+    ``optimize=False`` stops the parser from merging meshes that share a BSDF into one
+    anonymous mesh: merged shapes lose their ids, and with them their parameter keys.
+    """
+    try:
+        return mi.load_file(str(loadable), optimize=False, **overrides)
+    except Exception as exc:  # Mitsuba raises RuntimeError/ValueError with the parser's text
+        message = str(exc).replace(str(loadable), display).strip()
+        raise InvalidArgument(f"Mitsuba cannot load '{display}': {message}") from None
+
+
+def has_media(scene: mi.Scene) -> bool:
+    """Whether any shape bounds a medium or any sensor sits in one (then prbvolpath is needed)."""
+    for shape in scene.shapes():
+        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+            return True
+    return any(s.get_medium() is not None for s in scene.sensors())
+
+
+def describe(scene: mi.Scene) -> Description:
+    sensors = []
+    for i, sensor in enumerate(scene.sensors()):
+        size = sensor.film().crop_size()
+        sensors.append((sensor.id() or f"sensor_{i}", int(size[0]), int(size[1])))
+    return Description(sensors, has_media(scene), parameters.describe(mi.traverse(scene)))

@@ -1,0 +1,26 @@
+"""Errors that reach the user as a gRPC status: the code says what kind, the message says which
+file, key or value. Everything else that escapes a handler is INTERNAL."""
+
+from __future__ import annotations
+
+import grpc
+
+
+class UserError(Exception):
+    code = grpc.StatusCode.INVALID_ARGUMENT
+
+
+class InvalidArgument(UserError):
+    code = grpc.StatusCode.INVALID_ARGUMENT
+
+
+class NotFound(UserError):
+    code = grpc.StatusCode.NOT_FOUND
+
+
+class FailedPrecondition(UserError):
+    code = grpc.StatusCode.FAILED_PRECONDITION
+
+
+class AlreadyExists(UserError):
+    code = grpc.StatusCode.ALREADY_EXISTS

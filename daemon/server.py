@@ -1,0 +1,443 @@
+"""The gRPC handlers: requests are checked here, in the caller's terms, before any engine work
+is queued; engine work goes to the scheduler's worker. A handler never touches Dr.Jit.
+
+Every failure a user can cause becomes a canonical status code with a message naming the file,
+key or value; anything else is INTERNAL, logged, and confined to that one request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import difflib
+import functools
+import logging
+import math
+import shutil
+import uuid
+
+import grpc
+
+from matopt import __version__
+from matopt.v1 import matopt_pb2 as pb
+from matopt.v1 import matopt_pb2_grpc as rpc
+
+from . import scenes
+from .auth import Authenticator
+from .errors import FailedPrecondition, InvalidArgument, NotFound, UserError
+from .scheduler import FINAL, Scheduler, now
+from .store import CHUNK, Store
+
+log = logging.getLogger("matoptd.server")
+
+DEFAULT_ITERATIONS = 100
+DEFAULT_MIN_ERROR = 0.001
+DEFAULT_SPP = 4
+DEFAULT_PAGE, MAX_PAGE = 50, 1000
+
+
+async def _guard(context, fn):
+    """Runs a handler body, turning our exceptions into statuses."""
+    try:
+        return await fn()
+    except UserError as exc:
+        await context.abort(exc.code, str(exc))
+    except (grpc.aio.AbortError, asyncio.CancelledError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - one bad request must not take others down
+        log.exception("internal error")
+        await context.abort(grpc.StatusCode.INTERNAL, f"internal error: {type(exc).__name__}: "
+                                                      f"{exc}")
+
+
+async def _user(self, context) -> str:
+    user = self.auth.user(context)
+    if user is None:
+        await context.abort(grpc.StatusCode.UNAUTHENTICATED,
+                            "missing or unknown token: send 'authorization: Bearer <token>'")
+    return user
+
+
+def unary(fn):
+    """An RPC with one response, called as fn(self, request, context, user)."""
+    @functools.wraps(fn)
+    async def wrapper(self, request, context):
+        user = await _user(self, context)
+        return await _guard(context, lambda: fn(self, request, context, user))
+    return wrapper
+
+
+def streaming(fn):
+    """An RPC with a response stream, fn an async generator."""
+    @functools.wraps(fn)
+    async def wrapper(self, request, context):
+        user = await _user(self, context)
+        gen = fn(self, request, context, user)
+        while True:
+            item = await _guard(context, lambda: _anext(gen))
+            if item is _END:
+                return
+            yield item
+    return wrapper
+
+
+_END = object()
+
+
+async def _anext(gen):
+    try:
+        return await gen.__anext__()
+    except StopAsyncIteration:
+        return _END
+
+
+def _page(token: str, size: int) -> tuple[int, int]:
+    if size < 0:
+        raise InvalidArgument(f"page_size must be >= 0, got {size}")
+    try:
+        offset = int(token) if token else 0
+        if offset < 0:
+            raise ValueError
+    except ValueError:
+        raise InvalidArgument(f"invalid page_token '{token}'") from None
+    return offset, min(size or DEFAULT_PAGE, MAX_PAGE)
+
+
+def _next_token(offset: int, limit: int, got: int) -> str:
+    return str(offset + limit) if got == limit else ""
+
+
+def _name(prefix: str, name: str) -> str:
+    """Accepts 'jobs/abc' or 'abc'."""
+    if not name:
+        raise InvalidArgument(f"name is empty: expected '{prefix}/<id>'")
+    return name if name.startswith(prefix + "/") else f"{prefix}/{name}"
+
+
+class Service:
+    """State shared by the servicers."""
+
+    def __init__(self, store: Store, scheduler: Scheduler, auth: Authenticator) -> None:
+        self.store, self.scheduler, self.auth = store, scheduler, auth
+
+
+# -- blobs -----------------------------------------------------------------------------------
+
+class Blobs(rpc.BlobsServicer):
+    def __init__(self, svc: Service) -> None:
+        self.store, self.auth = svc.store, svc.auth
+
+    @unary
+    async def FindMissingBlobs(self, request, context, user):
+        return pb.FindMissingBlobsResponse(
+            missing_sha256=[s for s in request.sha256 if not self.store.has_blob(s)])
+
+    @unary
+    async def UploadBlob(self, request_iterator, context, user):
+        upload = self.store.begin_upload()
+        try:
+            header = None
+            async for msg in request_iterator:
+                if msg.HasField("header"):
+                    if header is not None:
+                        raise InvalidArgument("UploadBlob got a second header")
+                    header = msg.header
+                    self.store.blob_path(header.sha256)  # validates the digest's form
+                elif header is None:
+                    raise InvalidArgument("UploadBlob must start with a header "
+                                          "(sha256, size_bytes)")
+                else:
+                    upload.write(msg.chunk)
+            if header is None:
+                raise InvalidArgument("UploadBlob got no header")
+            return upload.commit(header.sha256, header.size_bytes)
+        finally:
+            upload.abort()
+
+    @streaming
+    async def DownloadBlob(self, request, context, user):
+        path = self.store.blob_file(request.name)
+        with open(path, "rb") as f:
+            while chunk := f.read(CHUNK):
+                yield pb.DownloadBlobResponse(chunk=chunk)
+
+
+# -- scenes ----------------------------------------------------------------------------------
+
+class Scenes(rpc.ScenesServicer):
+    def __init__(self, svc: Service) -> None:
+        self.store, self.scheduler, self.auth = svc.store, svc.scheduler, svc.auth
+
+    @unary
+    async def CreateScene(self, request, context, user):
+        if request.request_id:
+            existing = self.store.scene_by_request(user, request.request_id)
+            if existing:
+                return existing
+        name = f"scenes/{uuid.uuid4().hex[:12]}"
+        directory = self.scheduler.scene_dir(name)
+        try:
+            main = scenes.materialize(self.store, directory, request.main_file,
+                                      list(request.files))
+            prepared = scenes.prepare(directory, main, dict(request.overrides))
+            display = request.display_name or main.rsplit("/", 1)[-1]
+            scene = pb.Scene(name=name, display_name=display,
+                             main_file=request.main_file and main, files=request.files,
+                             overrides=prepared.overrides, warnings=prepared.warnings)
+            if not request.main_file and not request.files:
+                scene.main_file, scene.display_name = main, request.display_name or "cornell-box"
+
+            def inspect():
+                engine = self.scheduler.engine()
+                loaded = engine.load(prepared.loadable, prepared.overrides, main)
+                return engine.inspect(loaded)
+
+            sensors, media, params = await self.scheduler.call(inspect)
+        except BaseException:
+            shutil.rmtree(directory, ignore_errors=True)
+            raise
+        scene.sensors.extend(sensors)
+        scene.has_media, scene.parameter_count = media, len(params)
+        scene.create_time.CopyFrom(now())
+        self.store.add_scene(user, request.request_id, scene,
+                             pb.ListSceneParametersResponse(parameters=params))
+        return scene
+
+    @unary
+    async def GetScene(self, request, context, user):
+        return self.store.get_scene(user, _name("scenes", request.name))
+
+    @unary
+    async def ListScenes(self, request, context, user):
+        offset, limit = _page(request.page_token, request.page_size)
+        found = self.store.list_scenes(user, offset, limit)
+        return pb.ListScenesResponse(scenes=found,
+                                     next_page_token=_next_token(offset, limit, len(found)))
+
+    @unary
+    async def DeleteScene(self, request, context, user):
+        name = _name("scenes", request.name)
+        self.store.delete_scene(user, name)
+        await self.scheduler.call(lambda: self.scheduler.forget_scene(name))
+        return pb.DeleteSceneResponse()
+
+    @unary
+    async def ListSceneParameters(self, request, context, user):
+        return self.store.scene_parameters(user, _name("scenes", request.name))
+
+    @unary
+    async def RenderScene(self, request, context, user):
+        scene = self.store.get_scene(user, _name("scenes", request.name))
+        if request.spp < 0:
+            raise InvalidArgument(f"spp must be >= 1, got {request.spp}")
+
+        def render():
+            return self.scheduler.engine().render(
+                self.scheduler.loaded_scene(scene), request, self.store.put_blob,
+                lambda b: self.store.blob_file(b).read_bytes())
+
+        return pb.RenderSceneResponse(images=await self.scheduler.call(render))
+
+
+# -- jobs ------------------------------------------------------------------------------------
+
+def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Parameter],
+                store: Store) -> pb.JobSpec:
+    """Validates a job's settings against its scene and fills in every default."""
+    out = pb.JobSpec()
+    out.CopyFrom(spec)
+    out.scene = scene.name
+    if spec.HasField("iterations") and spec.iterations < 1:
+        raise InvalidArgument(f"iterations must be >= 1, got {spec.iterations}")
+    if spec.HasField("spp") and spec.spp < 1:
+        raise InvalidArgument(f"spp must be >= 1, got {spec.spp}")
+    if spec.HasField("min_error") and not math.isfinite(spec.min_error):
+        raise InvalidArgument(f"min_error must be finite, got {spec.min_error}")
+    if spec.loss not in (pb.LOSS_UNSPECIFIED, pb.MSE, pb.DUAL_BUFFER):
+        raise InvalidArgument(f"unknown loss {spec.loss}")
+    out.iterations = spec.iterations if spec.HasField("iterations") else DEFAULT_ITERATIONS
+    out.spp = spec.spp if spec.HasField("spp") else DEFAULT_SPP
+    out.min_error = spec.min_error if spec.HasField("min_error") else DEFAULT_MIN_ERROR
+    out.loss = spec.loss or pb.MSE
+    out.schedule = spec.schedule or pb.COSINE
+    default_lr = spec.learning_rate if spec.HasField("learning_rate") else None
+    if default_lr is not None and not (math.isfinite(default_lr) and default_lr > 0):
+        raise InvalidArgument(f"learning_rate must be > 0, got {default_lr}")
+
+    count = len(scene.sensors)
+    refs = list(spec.references)
+    if not refs:
+        raise InvalidArgument(f"no reference images: the scene has {count} sensor(s)")
+    explicit = [r.HasField("sensor") for r in refs]
+    if any(explicit) and not all(explicit):
+        raise InvalidArgument("either every reference names its sensor or none does")
+    if not any(explicit) and len(refs) != count:
+        raise InvalidArgument(f"got {len(refs)} reference image(s) for a scene with {count} "
+                              f"sensor(s): give one per sensor, in order, or name the sensor "
+                              f"of each")
+    seen = set()
+    for i, r in enumerate(refs):
+        label = r.filename or r.blob
+        index = r.sensor if r.HasField("sensor") else i
+        if not 0 <= index < count:
+            raise InvalidArgument(f"reference '{label}' names sensor {index}, but the scene "
+                                  f"has {count} sensor(s)")
+        if index in seen:
+            raise InvalidArgument(f"two reference images for sensor {index}")
+        seen.add(index)
+        store.blob_file(r.blob)
+
+    if not spec.parameters:
+        raise InvalidArgument("no parameters selected: name at least one key "
+                              "(ListSceneParameters shows them)")
+    keys = set()
+    for p in out.parameters:
+        if p.key not in params:
+            close = difflib.get_close_matches(p.key, list(params), n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise InvalidArgument(f"unknown parameter key '{p.key}' in scene "
+                                  f"'{scene.display_name}'{hint}")
+        if p.key in keys:
+            raise InvalidArgument(f"parameter '{p.key}' is selected twice")
+        keys.add(p.key)
+        info = params[p.key]
+        lr = p.learning_rate if p.HasField("learning_rate") else (
+            default_lr or info.default_learning_rate)
+        if not (math.isfinite(lr) and lr > 0):
+            raise InvalidArgument(f"learning rate of '{p.key}' must be > 0, got {lr}")
+        lo = p.min if p.HasField("min") else info.min
+        hi = p.max if p.HasField("max") else info.max
+        if not lo < hi:
+            raise InvalidArgument(f"range of '{p.key}' is empty: min {lo} >= max {hi}")
+        if lo < info.min or hi > info.max:
+            raise InvalidArgument(f"range [{lo}, {hi}] of '{p.key}' leaves its legal range "
+                                  f"[{info.min}, {info.max}]")
+        size = math.prod(info.shape) if info.shape else 1
+        if p.initial_value and len(p.initial_value) != size:
+            raise InvalidArgument(f"initial value of '{p.key}' has {len(p.initial_value)} "
+                                  f"component(s), expected {size}")
+        if any(not math.isfinite(v) for v in p.initial_value):
+            raise InvalidArgument(f"initial value of '{p.key}' is not finite")
+        p.learning_rate, p.min, p.max = lr, lo, hi
+    return out
+
+
+class Jobs(rpc.JobsServicer):
+    def __init__(self, svc: Service) -> None:
+        self.store, self.scheduler, self.auth = svc.store, svc.scheduler, svc.auth
+
+    @unary
+    async def CreateJob(self, request, context, user):
+        if request.request_id:
+            existing = self.store.job_by_request(user, request.request_id)
+            if existing:
+                return existing
+        scene = self.store.get_scene(user, _name("scenes", request.spec.scene))
+        params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
+        spec = _check_spec(request.spec, scene, params, self.store)
+
+        def check_references():
+            engine = self.scheduler.engine()
+            for i, r in enumerate(spec.references):
+                s = scene.sensors[r.sensor if r.HasField("sensor") else i]
+                engine.check_reference(self.store.blob_file(r.blob), r.filename or r.blob,
+                                       (s.width, s.height))
+
+        await self.scheduler.call(check_references)
+        job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
+                     owner=user, best_iteration=-1)
+        job.create_time.CopyFrom(now())
+        job.update_time.CopyFrom(job.create_time)
+        self.store.add_job(job, request.request_id)
+        self.scheduler.enqueue(job)
+        return job
+
+    @unary
+    async def GetJob(self, request, context, user):
+        return self.store.get_job(_name("jobs", request.name), user)
+
+    @unary
+    async def ListJobs(self, request, context, user):
+        offset, limit = _page(request.page_token, request.page_size)
+        states = (request.state,) if request.state else ()
+        found = self.store.list_jobs(user, offset, limit, states)
+        return pb.ListJobsResponse(jobs=found,
+                                   next_page_token=_next_token(offset, limit, len(found)))
+
+    @unary
+    async def DeleteJob(self, request, context, user):
+        self.scheduler.delete(user, _name("jobs", request.name))
+        return pb.DeleteJobResponse()
+
+    @unary
+    async def PauseJob(self, request, context, user):
+        return self.scheduler.pause(user, _name("jobs", request.name))
+
+    @unary
+    async def ResumeJob(self, request, context, user):
+        return self.scheduler.resume(user, _name("jobs", request.name))
+
+    @unary
+    async def CancelJob(self, request, context, user):
+        return self.scheduler.cancel(user, _name("jobs", request.name))
+
+    @streaming
+    async def WatchJob(self, request, context, user):
+        name = _name("jobs", request.name)
+        self.store.get_job(name, user)  # NOT_FOUND before subscribing
+        queue = self.scheduler.subscribe(name)
+        try:
+            job = self.store.get_job(name, user)
+            yield pb.JobEvent(job=job)
+            if job.state in FINAL:
+                return
+            while True:
+                event = await queue.get()
+                yield event
+                if event.HasField("job") and event.job.state in FINAL:
+                    return
+        finally:
+            self.scheduler.unsubscribe(name, queue)
+
+    @unary
+    async def GetJobResult(self, request, context, user):
+        name = _name("jobs", request.name)
+        job = self.store.get_job(name, user)
+        which = request.which or pb.BEST
+        result = self.store.result(name, which)
+        if result is None:
+            raise FailedPrecondition(f"job '{name}' has no {pb.Which.Name(which)} result "
+                                     f"({pb.State.Name(job.state)}): results exist once a job "
+                                     f"succeeded or was cancelled after its first iteration")
+        return result
+
+    @unary
+    async def GetJobHistory(self, request, context, user):
+        name = _name("jobs", request.name)
+        self.store.get_job(name, user)
+        return pb.GetJobHistoryResponse(iterations=self.store.history(name))
+
+
+# -- server ----------------------------------------------------------------------------------
+
+class Server(rpc.ServerServicer):
+    def __init__(self, svc: Service) -> None:
+        self.scheduler, self.auth = svc.scheduler, svc.auth
+
+    @unary
+    async def GetServerInfo(self, request, context, user):
+        return pb.ServerInfo(
+            version=__version__, variant=self.scheduler.variant, device=self.scheduler.device,
+            user=user, losses=["mse", "dual_buffer"], integrators=["prb", "prbvolpath",
+                                                                   "prb_projective"],
+            capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
+                          "checkpoint-resume", "watch", "render", "multi-user"])
+
+
+def add_services(server: grpc.aio.Server, svc: Service) -> list[str]:
+    """Registers the matopt services; returns their full names (for health and reflection)."""
+    rpc.add_BlobsServicer_to_server(Blobs(svc), server)
+    rpc.add_ScenesServicer_to_server(Scenes(svc), server)
+    rpc.add_JobsServicer_to_server(Jobs(svc), server)
+    rpc.add_ServerServicer_to_server(Server(svc), server)
+    return [pb.DESCRIPTOR.services_by_name[n].full_name
+            for n in ("Blobs", "Scenes", "Jobs", "Server")]

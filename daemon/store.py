@@ -1,0 +1,245 @@
+"""Everything that must survive a daemon restart: an SQLite database of scenes, jobs, their
+iteration histories, results and checkpoints, and content-addressed blobs on disk.
+
+Rows hold the serialized protobuf messages of the API, so what a client reads after a restart
+is byte for byte what it read before. A few columns (owner, state, request_id) are copied out
+of the message for lookups. The store is shared by the gRPC handlers and the worker thread, so
+every access takes one lock; SQLite in WAL mode keeps those short.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sqlite3
+import tempfile
+import threading
+from pathlib import Path
+
+from matopt.v1 import matopt_pb2 as pb
+
+from .errors import InvalidArgument, NotFound
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS scenes (
+    name TEXT PRIMARY KEY, owner TEXT NOT NULL, request_id TEXT, seq INTEGER NOT NULL,
+    scene BLOB NOT NULL, parameters BLOB NOT NULL);
+CREATE UNIQUE INDEX IF NOT EXISTS scenes_request ON scenes(owner, request_id)
+    WHERE request_id IS NOT NULL;
+CREATE TABLE IF NOT EXISTS jobs (
+    name TEXT PRIMARY KEY, owner TEXT NOT NULL, request_id TEXT, seq INTEGER NOT NULL,
+    state INTEGER NOT NULL, job BLOB NOT NULL, checkpoint TEXT);
+CREATE UNIQUE INDEX IF NOT EXISTS jobs_request ON jobs(owner, request_id)
+    WHERE request_id IS NOT NULL;
+CREATE TABLE IF NOT EXISTS iterations (
+    job TEXT NOT NULL, iteration INTEGER NOT NULL, record BLOB NOT NULL,
+    PRIMARY KEY (job, iteration));
+CREATE TABLE IF NOT EXISTS results (
+    job TEXT NOT NULL, which INTEGER NOT NULL, result BLOB NOT NULL,
+    PRIMARY KEY (job, which));
+"""
+
+CHUNK = 1 << 20
+
+
+class Store:
+    def __init__(self, data_dir: Path) -> None:
+        self.root = Path(data_dir)
+        self.blob_dir = self.root / "blobs"
+        self.blob_dir.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(self.root / "matoptd.sqlite3", check_same_thread=False,
+                                   isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(_SCHEMA)
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
+        with self._lock:
+            return self._db.execute(sql, args).fetchall()
+
+    # -- blobs ------------------------------------------------------------------------------
+
+    def blob_path(self, sha256: str) -> Path:
+        if len(sha256) != 64 or any(c not in "0123456789abcdef" for c in sha256):
+            raise InvalidArgument(f"'{sha256}' is not a lowercase hex SHA-256 digest")
+        return self.blob_dir / sha256[:2] / sha256
+
+    def has_blob(self, sha256: str) -> bool:
+        return self.blob_path(sha256).exists()
+
+    def begin_upload(self) -> "Upload":
+        return Upload(self)
+
+    def put_blob(self, data: bytes) -> str:
+        """Stores bytes; returns the blob's resource name."""
+        upload = self.begin_upload()
+        upload.write(data)
+        return upload.commit().name
+
+    def blob_file(self, name: str) -> Path:
+        """The file behind ``blobs/{sha256}`` (or a bare digest); NOT_FOUND if absent."""
+        sha = name.removeprefix("blobs/")
+        path = self.blob_path(sha)
+        if not path.exists():
+            raise NotFound(f"blob '{name}' not found (upload it first)")
+        return path
+
+    # -- scenes -----------------------------------------------------------------------------
+
+    def add_scene(self, owner: str, request_id: str | None, scene: pb.Scene,
+                  parameters: pb.ListSceneParametersResponse) -> None:
+        with self._lock:
+            self._db.execute(
+                "INSERT INTO scenes VALUES (?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM scenes),"
+                " ?, ?)",
+                (scene.name, owner, request_id or None, scene.SerializeToString(),
+                 parameters.SerializeToString()))
+
+    def scene_by_request(self, owner: str, request_id: str) -> pb.Scene | None:
+        rows = self._query("SELECT scene FROM scenes WHERE owner=? AND request_id=?",
+                           (owner, request_id))
+        return pb.Scene.FromString(rows[0][0]) if rows else None
+
+    def get_scene(self, owner: str, name: str) -> pb.Scene:
+        rows = self._query("SELECT scene FROM scenes WHERE name=? AND owner=?", (name, owner))
+        if not rows:
+            raise NotFound(f"scene '{name}' not found")
+        return pb.Scene.FromString(rows[0][0])
+
+    def scene_parameters(self, owner: str, name: str) -> pb.ListSceneParametersResponse:
+        rows = self._query("SELECT parameters FROM scenes WHERE name=? AND owner=?",
+                           (name, owner))
+        if not rows:
+            raise NotFound(f"scene '{name}' not found")
+        return pb.ListSceneParametersResponse.FromString(rows[0][0])
+
+    def list_scenes(self, owner: str, offset: int, limit: int) -> list[pb.Scene]:
+        rows = self._query("SELECT scene FROM scenes WHERE owner=? ORDER BY seq LIMIT ? OFFSET ?",
+                           (owner, limit, offset))
+        return [pb.Scene.FromString(r[0]) for r in rows]
+
+    def delete_scene(self, owner: str, name: str) -> None:
+        self.get_scene(owner, name)
+        with self._lock:
+            self._db.execute("DELETE FROM scenes WHERE name=?", (name,))
+
+    # -- jobs -------------------------------------------------------------------------------
+
+    def add_job(self, job: pb.Job, request_id: str | None) -> None:
+        with self._lock:
+            self._db.execute(
+                "INSERT INTO jobs VALUES (?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM jobs),"
+                " ?, ?, NULL)",
+                (job.name, job.owner, request_id or None, job.state, job.SerializeToString()))
+
+    def job_by_request(self, owner: str, request_id: str) -> pb.Job | None:
+        rows = self._query("SELECT job FROM jobs WHERE owner=? AND request_id=?",
+                           (owner, request_id))
+        return pb.Job.FromString(rows[0][0]) if rows else None
+
+    def put_job(self, job: pb.Job) -> None:
+        with self._lock:
+            self._db.execute("UPDATE jobs SET state=?, job=? WHERE name=?",
+                             (job.state, job.SerializeToString(), job.name))
+
+    def get_job(self, name: str, owner: str | None = None) -> pb.Job:
+        """A job by name; with ``owner``, another user's job is NOT_FOUND, as if absent."""
+        rows = self._query("SELECT job, owner FROM jobs WHERE name=?", (name,))
+        if not rows or (owner is not None and rows[0][1] != owner):
+            raise NotFound(f"job '{name}' not found")
+        return pb.Job.FromString(rows[0][0])
+
+    def list_jobs(self, owner: str | None, offset: int, limit: int,
+                  states: tuple[int, ...] = ()) -> list[pb.Job]:
+        sql, args = "SELECT job FROM jobs WHERE 1=1", []
+        if owner is not None:
+            sql += " AND owner=?"
+            args.append(owner)
+        if states:
+            sql += f" AND state IN ({','.join('?' * len(states))})"
+            args += states
+        sql += " ORDER BY seq LIMIT ? OFFSET ?"
+        return [pb.Job.FromString(r[0]) for r in self._query(sql, (*args, limit, offset))]
+
+    def delete_job(self, name: str) -> None:
+        with self._lock:
+            for table, col in (("jobs", "name"), ("iterations", "job"), ("results", "job")):
+                self._db.execute(f"DELETE FROM {table} WHERE {col}=?", (name,))
+
+    def set_checkpoint(self, name: str, blob: str | None) -> None:
+        with self._lock:
+            self._db.execute("UPDATE jobs SET checkpoint=? WHERE name=?", (blob, name))
+
+    def checkpoint(self, name: str) -> str | None:
+        rows = self._query("SELECT checkpoint FROM jobs WHERE name=?", (name,))
+        return rows[0][0] if rows else None
+
+    # -- histories and results --------------------------------------------------------------
+
+    def add_iteration(self, job: str, record: pb.IterationRecord) -> None:
+        with self._lock:
+            self._db.execute("INSERT OR REPLACE INTO iterations VALUES (?, ?, ?)",
+                             (job, record.iteration, record.SerializeToString()))
+
+    def history(self, job: str) -> list[pb.IterationRecord]:
+        rows = self._query("SELECT record FROM iterations WHERE job=? ORDER BY iteration", (job,))
+        return [pb.IterationRecord.FromString(r[0]) for r in rows]
+
+    def truncate_history(self, job: str, keep_below: int) -> None:
+        """Forgets iterations from ``keep_below`` on (they will be run again after a resume)."""
+        with self._lock:
+            self._db.execute("DELETE FROM iterations WHERE job=? AND iteration>=?",
+                             (job, keep_below))
+
+    def put_result(self, result: pb.JobResult) -> None:
+        with self._lock:
+            self._db.execute("INSERT OR REPLACE INTO results VALUES (?, ?, ?)",
+                             (result.job, result.which, result.SerializeToString()))
+
+    def result(self, job: str, which: int) -> pb.JobResult | None:
+        rows = self._query("SELECT result FROM results WHERE job=? AND which=?", (job, which))
+        return pb.JobResult.FromString(rows[0][0]) if rows else None
+
+
+class Upload:
+    """A blob being written: to a temporary file first, renamed into place once its digest
+    and size check out, so a broken upload never leaves a blob with the wrong content."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        fd, self.tmp = tempfile.mkstemp(dir=store.blob_dir, prefix=".upload-")
+        self.file = os.fdopen(fd, "wb")
+        self.digest = hashlib.sha256()
+        self.size = 0
+
+    def write(self, chunk: bytes) -> None:
+        self.digest.update(chunk)
+        self.size += len(chunk)
+        self.file.write(chunk)
+
+    def commit(self, sha256: str | None = None, size: int | None = None) -> pb.Blob:
+        self.file.close()
+        try:
+            got = self.digest.hexdigest()
+            if sha256 is not None and got != sha256:
+                raise InvalidArgument(f"upload declared sha256 {sha256} but its content hashes "
+                                      f"to {got}")
+            if size is not None and self.size != size:
+                raise InvalidArgument(f"upload of {sha256} declared {size} bytes, got "
+                                      f"{self.size}")
+            path = self.store.blob_path(got)
+            path.parent.mkdir(exist_ok=True)
+            os.replace(self.tmp, path)
+            return pb.Blob(name=f"blobs/{got}", sha256=got, size_bytes=self.size)
+        finally:
+            self.abort()
+
+    def abort(self) -> None:
+        self.file.close()
+        if os.path.exists(self.tmp):
+            os.unlink(self.tmp)
