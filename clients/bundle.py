@@ -2,7 +2,7 @@
 
 Both sides follow these rules: the client to find which files to upload, the daemon to refuse a
 bundle that is incomplete or that points outside itself. Mitsuba resolves a relative
-``filename`` against the directory of the XML that names it, so we do the same.
+``filename`` against the directory of the main XML, so we do the same.
 """
 
 from __future__ import annotations
@@ -66,9 +66,12 @@ def declared_defaults(root: ET.Element) -> dict[str, str]:
     return {e.get("name", ""): e.get("value", "") for e in root.iter("default") if e.get("name")}
 
 
-def references(xml_path: str, text: bytes | str, overrides: dict[str, str] | None = None
-               ) -> list[Reference]:
+def references(xml_path: str, text: bytes | str, overrides: dict[str, str] | None = None,
+               base: str | None = None) -> list[Reference]:
     """Every file named by ``<string name="filename">`` or ``<include filename>`` in one XML.
+
+    Paths resolve against ``base``, the main XML's folder: Mitsuba 3.9 resolves a filename in
+    an included XML against the main file's folder too, not the included file's.
 
     ``$name`` placeholders are substituted with the XML's defaults and the given overrides, as
     Mitsuba does, so that ``<string name="filename" value="$mesh"/>`` resolves too.
@@ -76,7 +79,7 @@ def references(xml_path: str, text: bytes | str, overrides: dict[str, str] | Non
     xml_path = normalize(xml_path)
     root = parse_xml(text, xml_path)
     values = {**declared_defaults(root), **(overrides or {})}
-    base = posixpath.dirname(xml_path)
+    base = posixpath.dirname(xml_path) if base is None else base
     found: list[Reference] = []
     for elem in root.iter():
         if elem.tag == "string" and elem.get("name") == "filename":
@@ -102,7 +105,8 @@ def closure(main: str, read, overrides: dict[str, str] | None = None
     ``overrides`` are the XML defaults the scene is loaded with, since ``$name`` in a filename
     may then name a different file than the XML's own default.
     """
-    todo, seen = [normalize(main)], {}
+    main = normalize(main)
+    todo, seen, base = [main], {}, posixpath.dirname(main)
     while todo:
         xml = todo.pop()
         if xml in seen:
@@ -110,6 +114,6 @@ def closure(main: str, read, overrides: dict[str, str] | None = None
         text = read(xml)
         if text is None:
             raise BundleError(f"scene file '{xml}' is missing from the bundle")
-        seen[xml] = references(xml, text, overrides)
+        seen[xml] = references(xml, text, overrides, base)
         todo += [r.path for r in seen[xml] if r.path.lower().endswith(".xml")]
     return seen

@@ -263,6 +263,8 @@ def upload_files(client: Client, paths: Sequence[str | os.PathLike],
         except OSError as exc:
             raise ClientError(f"cannot read '{p}': {exc.strerror or exc}") from None
     unique = list(dict.fromkeys(digests))
+    if not unique:
+        return []
     missing = set(client.blobs.FindMissingBlobs(
         pb.FindMissingBlobsRequest(sha256=unique)).missing_sha256)
     for p, sha, label in zip(files, digests, labels or [str(p) for p in files]):

@@ -41,7 +41,8 @@ def download_images(client: Client, images, directory: Path) -> list[Path]:
     for image in images:
         for blob, extension in ((image.png_blob, "png"), (image.exr_blob, "exr")):
             if blob:
-                written.append(download_blob(client, blob, directory / image_filename(image, extension)))
+                path = directory / image_filename(image, extension)
+                written.append(download_blob(client, blob, path))
     return written
 
 
@@ -97,6 +98,7 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
         writer = csv.writer(f)
         writer.writerow(["iteration", "seconds", "loss"])
         for record in history.iterations:
-            writer.writerow([record.iteration, f"{record.seconds:.6g}", repr(short_float(record.loss))])
+            writer.writerow([record.iteration, f"{record.seconds:.6g}",
+                             repr(short_float(record.loss))])
     export.files.append(path)
     return export

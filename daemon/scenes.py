@@ -7,6 +7,7 @@ Three things happen here, all before the engine sees the scene:
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
   would lose its parameters after a restart;
+- Windows ``\\`` separators in file references become ``/``;
 - ``<default>`` overrides are applied only where the XML declares the default; others are
   reported as warnings, never required.
 """
@@ -41,7 +42,7 @@ class PreparedScene:
 
 
 def materialize(store: Store, directory: Path, main_file: str,
-                files: list[pb.BundleFile]) -> str:
+                files: list[pb.BundleFile], overrides: dict[str, str]) -> str:
     """Lays the bundle out under ``directory``; returns the main XML's bundle path."""
     if not main_file and not files:
         directory.mkdir(parents=True, exist_ok=True)
@@ -69,7 +70,7 @@ def materialize(store: Store, directory: Path, main_file: str,
         return store.blob_file(paths[path]).read_bytes() if path in paths else None
 
     try:
-        for xml, refs in bundle.closure(main, read).items():
+        for xml, refs in bundle.closure(main, read, overrides).items():
             for ref in refs:
                 if ref.path not in paths:
                     raise InvalidArgument(f"'{xml}' references '{ref.written}', which is not in "
@@ -102,10 +103,20 @@ def prepare(directory: Path, main: str, overrides: dict[str, str]) -> PreparedSc
     warnings = [f"override '{k}={v}' ignored: '{main}' declares no <default name=\"{k}\">"
                 for k, v in sorted(overrides.items()) if k not in declared]
     assign_ids(root)
+    forward_slashes(root)
     loadable = source.parent / LOADABLE_NAME
     ET.ElementTree(root).write(loadable, encoding="utf-8", xml_declaration=True)
     return PreparedScene(directory, loadable,
                          {k: v for k, v in overrides.items() if k in declared}, warnings)
+
+
+def forward_slashes(root: ET.Element) -> None:
+    """Windows separators in file references, which Mitsuba on Linux would take literally."""
+    for elem in root.iter():
+        if elem.tag == "string" and elem.get("name") == "filename":
+            elem.set("value", elem.get("value", "").replace("\\", "/"))
+        elif elem.tag == "include" and elem.get("filename"):
+            elem.set("filename", elem.get("filename", "").replace("\\", "/"))
 
 
 def assign_ids(root: ET.Element) -> None:

@@ -17,7 +17,6 @@ import asyncio
 import collections
 import logging
 import threading
-import time
 import traceback
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -305,10 +304,11 @@ class Scheduler:
             return
         try:
             run = self._runs.get(name) or self._load(job)
-            if run is None:
-                return
             with self._lock:
                 control = run.control
+                if job.state == pb.QUEUED and not control:  # resumed while kept in memory
+                    job.state = pb.RUNNING
+                    self._save(job)
             if control == "pause":
                 self._checkpoint(name, run)
                 with self._lock:
@@ -327,7 +327,7 @@ class Scheduler:
             log.error("job %s failed:\n%s", name, traceback.format_exc())
             self._fail(job, f"internal error: {type(exc).__name__}: {exc}")
 
-    def _load(self, job: pb.Job) -> Run | None:
+    def _load(self, job: pb.Job) -> Run:
         scene = self.store.get_scene(job.owner, job.spec.scene)
         refs = {}
         for i, ref in enumerate(job.spec.references):

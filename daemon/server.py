@@ -23,7 +23,7 @@ from matopt.v1 import matopt_pb2_grpc as rpc
 
 from . import scenes
 from .auth import Authenticator
-from .errors import FailedPrecondition, InvalidArgument, NotFound, UserError
+from .errors import FailedPrecondition, InvalidArgument, UserError
 from .scheduler import FINAL, Scheduler, now
 from .store import CHUNK, Store
 
@@ -177,7 +177,7 @@ class Scenes(rpc.ScenesServicer):
         directory = self.scheduler.scene_dir(name)
         try:
             main = scenes.materialize(self.store, directory, request.main_file,
-                                      list(request.files))
+                                      list(request.files), dict(request.overrides))
             prepared = scenes.prepare(directory, main, dict(request.overrides))
             display = request.display_name or main.rsplit("/", 1)[-1]
             scene = pb.Scene(name=name, display_name=display,
@@ -227,7 +227,7 @@ class Scenes(rpc.ScenesServicer):
     @unary
     async def RenderScene(self, request, context, user):
         scene = self.store.get_scene(user, _name("scenes", request.name))
-        if request.spp < 0:
+        if request.HasField("spp") and request.spp < 1:
             raise InvalidArgument(f"spp must be >= 1, got {request.spp}")
 
         def render():

@@ -7,26 +7,32 @@ a wrong command line, 130 for Ctrl-C.
 
 from __future__ import annotations
 
+import os
 import sys
 
-import click
-import grpc
+# gRPC's C core logs connection failures to stderr on its own; the CLI reports them itself,
+# in one line. Must be set before grpc is first imported.
+os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
+
+import click  # noqa: E402
+import grpc  # noqa: E402
 
 from matopt import __version__
 from matopt.bundle import BundleError
 from matopt.client import ClientError, error_message
 from matopt.v1 import matopt_pb2 as pb
-from matopt.cli.output import emit_json, fields
+from matopt.cli.output import emit_json, fields, json_option
 from matopt.cli.session import Group, Settings, connected, root_options
 
 
 def _fail(message: str, code: int) -> int:
-    click.echo(f"matopt: error: {message}", err=True)
+    one_line = " ".join(message.split())  # a daemon's error may carry a multi-line traceback
+    click.echo(f"matopt: error: {one_line}", err=True)
     return code
 
 
 def _usage_message(exc: click.UsageError) -> str:
-    text = " ".join(exc.format_message().split())
+    text = exc.format_message()
     if exc.ctx is not None:
         text += f" (see '{exc.ctx.command_path} --help')"
     return text
@@ -64,7 +70,7 @@ class Main(Group):
         return code
 
 
-@click.group(cls=Main, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group("matopt", cls=Main, context_settings={"help_option_names": ["-h", "--help"]})
 @root_options
 @click.version_option(__version__, prog_name="matopt")
 @click.pass_context
@@ -78,9 +84,12 @@ def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) 
 
 
 @cli.command()
-@click.option("--json", "as_json", is_flag=True, help="print the ServerInfo as JSON")
+@json_option
 def info(as_json: bool) -> None:
-    """What the daemon runs: version, Mitsuba variant, device, your user, losses, integrators."""
+    """Show what the daemon runs.
+
+    Version, Mitsuba variant, device, the user your token belongs to, losses, integrators.
+    """
     client = connected()
     info = client.info or client.server.GetServerInfo(pb.GetServerInfoRequest())
     if as_json:

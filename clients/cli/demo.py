@@ -8,6 +8,7 @@ first example to read. Without a daemon at --server it runs a private one for it
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 import uuid
 from pathlib import Path
@@ -59,10 +60,6 @@ def _run(client: mc.Client, name: str) -> pb.Job:
         progress.close()
 
 
-def _max_error(a, b) -> float:
-    return max((abs(x - y) for x, y in zip(a, b)), default=float("nan"))
-
-
 @click.command()
 @click.option("--out", "out_dir", default="./matopt-demo", show_default=True,
               type=click.Path(file_okay=False), help="directory for the results")
@@ -73,9 +70,11 @@ def _max_error(a, b) -> float:
 @click.option("--spp", default=4, show_default=True, type=int,
               help="samples per pixel of each step")
 def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
-    """Recover the Cornell box's wall colours from a rendering of it, starting from grey.
+    """Run the whole loop on the built-in Cornell box.
 
-    Uses the daemon at --server if one answers, else starts a private one.
+    Renders a reference from the true wall colours, optimizes the walls from grey, exports
+    the result to --out and compares recovered and true colours. Uses the daemon at --server
+    if one answers, else starts a private one for its duration.
     """
     with contextlib.ExitStack() as stack:
         client = _client(stack)
@@ -105,15 +104,25 @@ def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
         done = export_job(client, job.name, Path(out_dir), "best")
         recovered = {v.key: list(v.value) for v in done.result.parameters}
         initial = {v.key: list(v.value) for v in done.result.initial_parameters}
-        rows, worst = [], 0.0
-        for key in KEYS:
-            error = _max_error(recovered.get(key, []), truth[key])
-            worst = max(worst, error)
-            rows.append([key, _vector(initial.get(key, START)), _vector(recovered.get(key, [])),
-                         _vector(truth[key]), number(error)])
-        table(["PARAMETER", "INITIAL", "RECOVERED", "TRUE", "MAX ABS ERROR"], rows)
-        click.echo(f"max abs error {number(worst)} (best iteration {done.result.iteration}, "
-                   f"loss {number(done.result.loss)}); results in {out_dir}")
+        errors = {key: _max_error(recovered.get(key, []), truth[key]) for key in KEYS}
+        table(["PARAMETER", "INITIAL", "RECOVERED", "TRUE", "MAX ABS ERROR"],
+              [[key, _vector(initial.get(key, START)), _vector(recovered.get(key, [])),
+                _vector(truth[key]), number(errors[key])] for key in KEYS])
+        click.echo(f"max abs error {number(_max(errors.values()))} (best iteration "
+                   f"{done.result.iteration}, loss {number(done.result.loss)}); "
+                   f"results in {out_dir}")
+
+
+def _max_error(a: list[float], b: list[float]) -> float:
+    """Largest component difference; NaN when a value is missing, so it cannot look good."""
+    if not a or len(a) != len(b):
+        return math.nan
+    return max(abs(x - y) for x, y in zip(a, b))
+
+
+def _max(values) -> float:
+    values = list(values)
+    return math.nan if any(math.isnan(v) for v in values) else max(values)
 
 
 def _vector(values) -> str:

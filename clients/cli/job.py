@@ -10,7 +10,7 @@ from typing import Sequence
 import click
 
 from matopt import client as mc
-from matopt.cli.output import (emit_json, fields, json_option, note, number, table, timestamp,
+from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
                                 uploading)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
@@ -25,7 +25,7 @@ STATES = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]
 
 @click.group(cls=Group)
 def job() -> None:
-    """Jobs: optimizations of a scene's parameters against reference images."""
+    """Optimize a scene's parameters to match reference images."""
 
 
 def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.ParameterSpec]:
@@ -65,7 +65,8 @@ def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]]
     out = []
     for sensor, image in refs:
         blob = image if _is_blob(image) else mc.blob_name(digests[image])
-        ref = pb.Reference(blob=blob, filename=os.path.basename(image))
+        filename = image if _is_blob(image) else os.path.basename(image)
+        ref = pb.Reference(blob=blob, filename=filename)
         if sensor is not None:
             ref.sensor = sensor
         out.append(ref)
@@ -103,9 +104,10 @@ def _is_blob(image: str) -> bool:
 def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
           wait: bool, as_json: bool) -> None:
-    """Start optimizing SCENE's parameters to match the reference images; prints the job name.
+    """Start a job on SCENE; prints the job's name.
 
-    Options left out take the daemon's defaults (shown by 'matopt job status'). With --wait,
+    The --param keys of SCENE are optimized until its renders match the --ref images. Options
+    left out take the daemon's defaults (shown by 'matopt job status'). With --wait,
     the exit status is non-zero if the job fails or is cancelled.
     """
     given = {"iterations": iterations, "spp": spp, "min_error": min_error, "seed": seed,
@@ -146,7 +148,7 @@ def wait_with_progress(client: mc.Client, name: str) -> pb.Job:
               help="only jobs in this state")
 @json_option
 def list_jobs(state: str | None, as_json: bool) -> None:
-    """Your jobs, newest state first as the daemon orders them."""
+    """List your jobs."""
     client = connected()
     request = pb.ListJobsRequest(state=pb.State.Value(state.upper()) if state else 0)
     jobs = mc.list_all(client.jobs.ListJobs, request, "jobs")
@@ -155,7 +157,9 @@ def list_jobs(state: str | None, as_json: bool) -> None:
         return
     table(["NAME", "STATE", "ITERATION", "LOSS", "BEST", "SCENE", "CREATED"],
           [[j.name, mc.state_name(j.state), f"{j.iteration}/{j.spec.iterations}",
-            number(j.loss), number(j.best_loss), j.spec.scene, timestamp(j.create_time)]
+            number(j.loss) if j.iteration else "",
+            number(j.best_loss) if j.iteration and j.best_iteration >= 0 else "",
+            j.spec.scene, timestamp(j.create_time)]
            for j in jobs])
 
 
@@ -163,7 +167,10 @@ def list_jobs(state: str | None, as_json: bool) -> None:
 @click.argument("name", metavar="JOB", type=JOB)
 @json_option
 def status(name: str, as_json: bool) -> None:
-    """A job's state, progress and settings (with the daemon's defaults filled in)."""
+    """Show a job's state, progress and settings.
+
+    The settings include the daemon's defaults for whatever the job was started without.
+    """
     j = connected().jobs.GetJob(pb.GetJobRequest(name=name))
     if as_json:
         emit_json(j)
@@ -175,8 +182,8 @@ def status(name: str, as_json: bool) -> None:
         "error": j.error or None,
         "scene": spec.scene,
         "iteration": f"{j.iteration}/{spec.iterations}",
-        "loss": number(j.loss),
-        "best loss": f"{number(j.best_loss)} (iteration {j.best_iteration})",
+        "loss": number(j.loss) if j.iteration else "",
+        "best loss": best(j),
         "elapsed": f"{j.elapsed_seconds:.1f} s",
         "parameters": ", ".join(p.key for p in spec.parameters),
         "references": ", ".join(r.filename or r.blob for r in spec.references),
@@ -199,7 +206,11 @@ def status(name: str, as_json: bool) -> None:
 @click.option("--json", "as_json", is_flag=True,
               help="one JSON object per event and line (the JobEvent)")
 def watch_job(name: str, as_json: bool) -> None:
-    """Print the job's events, one line each, until it ends; non-zero exit if it fails."""
+    """Print a job's events until it ends.
+
+    One line per event (state changes and iterations). The exit status is non-zero if the job
+    fails or is cancelled.
+    """
     total = 0
 
     def show(event: pb.JobEvent) -> None:
@@ -229,11 +240,12 @@ def _control(verb: str, rpc: str, request_type, doc: str) -> None:
 
 
 _control("pause", "PauseJob", pb.PauseJobRequest,
-         "Pause a job at its next iteration; prints its state (watch it to see it change).")
+         "Pause a job (at its next iteration).\n\nPrints the job's state, which changes at the "
+         "next iteration boundary: 'matopt job watch' shows it.")
 _control("resume", "ResumeJob", pb.ResumeJobRequest,
          "Resume a paused or interrupted job.")
 _control("cancel", "CancelJob", pb.CancelJobRequest,
-         "Cancel a job at its next iteration; its results so far are kept.")
+         "Cancel a job (at its next iteration).\n\nIts results so far are kept.")
 
 
 @job.command()
@@ -248,7 +260,10 @@ def delete(name: str) -> None:
 @click.argument("name", metavar="JOB", type=JOB)
 @json_option
 def history(name: str, as_json: bool) -> None:
-    """Loss per iteration, with the optimizing time at which it was reached."""
+    """Show the loss per iteration.
+
+    With the optimizing time (paused and queued time excluded) at which each was reached.
+    """
     response = connected().jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
     if as_json:
         emit_json(response)
@@ -264,8 +279,10 @@ def history(name: str, as_json: bool) -> None:
 @click.option("--which", type=click.Choice(sorted(WHICH), case_sensitive=False), default="best",
               show_default=True, help="the lowest-loss iteration, or the last one")
 def export(name: str, out_dir: str, which: str) -> None:
-    """Write parameters.json, initial/optimized/reference images and history.csv to --out.
+    """Write a job's results to a directory.
 
+    parameters.json (values, initial values, shapes), the initial, optimized and reference
+    images of each sensor (PNG and EXR), history.csv, and <key>.npy for large parameters.
     Prints the files written, one per line.
     """
     done = export_job(connected(), name, Path(out_dir), which.lower())

@@ -17,7 +17,6 @@ from google.protobuf.message import Message
 
 from matopt.client import short_float
 
-
 json_option = click.option("--json", "as_json", is_flag=True, help="print JSON for scripts")
 
 
@@ -56,14 +55,17 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
 
 
 def fields(pairs: dict[str, Any]) -> None:
-    """``name: value`` lines with the values aligned, for one object (a job, the server)."""
+    """``name: value`` lines with the values aligned, for one object; None values are left out."""
+    pairs = {k: v for k, v in pairs.items() if v is not None}
     width = max((len(k) for k in pairs), default=0) + 1
     for key, value in pairs.items():
-        click.echo(f"{key + ':':<{width}} {'' if value is None else value}".rstrip())
+        click.echo(f"{key + ':':<{width}} {value}".rstrip())
 
 
 def number(value: float) -> str:
     """A float32 value as people read it: 0.57, 1.2e-05, inf."""
+    if math.isnan(value):
+        return "nan"
     if math.isinf(value):
         return "inf" if value > 0 else "-inf"
     return f"{short_float(value):.6g}"
@@ -81,6 +83,13 @@ def size(n: int) -> str:
 def uploading(label: str, n: int) -> None:
     """The ``on_upload`` callback of the client library, for the terminal."""
     note(f"uploading {label} ({size(n)})")
+
+
+def best(job) -> str | None:
+    """A job's best loss and where it was reached; None before its first iteration."""
+    if job.iteration <= 0 or job.best_iteration < 0:
+        return None
+    return f"{number(job.best_loss)} at iteration {job.best_iteration}"
 
 
 def values(components: Sequence[float], limit: int = 4) -> str:

@@ -1,8 +1,7 @@
 """Parsing of the CLI's argument syntaxes (NAME=VALUE, KEY=v1,v2, KEY=MIN:MAX, [N=]IMG).
 
 Only the syntax is checked here: whether a key exists or a value is legal is the daemon's to
-say, so that the CLI and the daemon can never disagree about it. The one exception is
-:func:`nonzero`, for a value the wire cannot carry.
+say, so that the CLI and the daemon can never disagree about it.
 """
 
 from __future__ import annotations
@@ -10,7 +9,7 @@ from __future__ import annotations
 import os
 import re
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import click
 
@@ -140,18 +139,3 @@ class ReferenceImage(click.ParamType):
         return None, text
 
 
-def nonzero(option: str) -> Callable:
-    """A callback refusing 0 for an option whose API field has no presence (RenderScene spp).
-
-    On the wire such a 0 means "not set, use the default", so an explicit 0 could never reach
-    the daemon to be refused; rather than quietly running with the default, the CLI refuses it.
-    Other values, negative ones included, travel and are the daemon's to judge.
-    """
-
-    def check(ctx: click.Context, param: click.Parameter, value):
-        if value == 0:
-            raise click.BadParameter(f"0 cannot be sent: the API reads {option} 0 as 'not set' "
-                                     f"and the daemon would use its default", ctx, param)
-        return value
-
-    return check

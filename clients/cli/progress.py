@@ -10,9 +10,10 @@ import sys
 from typing import Callable
 
 import click
+import grpc
 
 from matopt import client as mc
-from matopt.cli.output import note, number
+from matopt.cli.output import best, note, number
 from matopt.v1 import matopt_pb2 as pb
 
 BAR_WIDTH = 24
@@ -52,14 +53,18 @@ class JobProgress:
             self.seconds = job.elapsed_seconds
             if job.iteration:
                 self.loss = job.loss
+            if job.iteration and job.best_iteration >= 0:
                 self.best = job.best_loss
             if changed and not self.interactive:
                 self._last_tenth = self._tenth()
                 note(self.line())
         else:
             record = event.iteration
-            self.iteration, self.loss, self.seconds = record.iteration, record.loss, record.seconds
-            self.best = record.loss if self.best is None else min(self.best, record.loss)
+            # Records are numbered from 0; after record i, i + 1 iterations are complete.
+            self.iteration = record.iteration + 1
+            self.loss, self.seconds = record.loss, record.seconds
+            if record.loss == record.loss:  # a NaN loss (a skipped step) is never the best
+                self.best = record.loss if self.best is None else min(self.best, record.loss)
             tenth = self._tenth()
             if not self.interactive and tenth != self._last_tenth:
                 self._last_tenth = tenth
@@ -95,9 +100,11 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
     """One line per event, for ``job watch``."""
     if event.HasField("job"):
         job = event.job
-        text = (f"{job.name} {mc.state_name(job.state)} iteration {job.iteration}/"
-                f"{job.spec.iterations} loss {number(job.loss)} best {number(job.best_loss)} "
-                f"(iteration {job.best_iteration})")
+        text = f"{job.name} {mc.state_name(job.state)} {job.iteration}/{job.spec.iterations}"
+        if job.iteration:
+            text += f" loss {number(job.loss)}"
+        if best(job):
+            text += f", best {best(job)}"
         if job.error:
             text += f": {job.error}"
         return text
@@ -107,12 +114,22 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
 
 
 def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:
-    """Waits for the job to end; Ctrl-C leaves it running and says how to stop it."""
+    """Waits for the job to end; says what became of the job when the waiting stops early.
+
+    Ctrl-C leaves the job running; a lost connection (the daemon stopped or restarted) leaves
+    it running or INTERRUPTED. Either way the user learns how to pick it up again.
+    """
     try:
         return mc.wait(client, name, on_event)
     except KeyboardInterrupt:
         raise Interrupted(f"interrupted; {name} keeps running on the daemon "
                           f"('matopt job cancel {name}' stops it)") from None
+    except grpc.RpcError as exc:
+        if exc.code() != grpc.StatusCode.UNAVAILABLE:
+            raise
+        raise click.ClickException(
+            f"lost the connection to matoptd while following {name} ({mc.error_message(exc)}); "
+            f"'matopt job status {name}' shows what became of it") from None
 
 
 def outcome(job: pb.Job) -> None:
@@ -120,8 +137,8 @@ def outcome(job: pb.Job) -> None:
     state = mc.state_name(job.state)
     if job.state == pb.SUCCEEDED:
         reason = f" ({job.stop_reason})" if job.stop_reason else ""
-        note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}; "
-             f"best loss {number(job.best_loss)} at iteration {job.best_iteration}")
+        lowest = f"; best loss {best(job)}" if best(job) else ""
+        note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}{lowest}")
         return
     if job.state == pb.FAILED:
         raise click.ClickException(f"job '{job.name}' FAILED: {job.error or 'no reason given'}")

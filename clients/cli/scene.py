@@ -10,7 +10,7 @@ import click
 from matopt import client as mc
 from matopt.cli.output import (emit_json, fields, json_option, message_dict, note, number, table,
                                 timestamp, uploading, values, warn)
-from matopt.cli.params import SCENE, Assignment, Values, nonzero
+from matopt.cli.params import SCENE, Assignment, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
 from matopt.v1 import matopt_pb2 as pb
@@ -19,7 +19,7 @@ from matopt.v1 import matopt_pb2 as pb
 
 @click.group(cls=Group)
 def scene() -> None:
-    """Scenes: a Mitsuba XML and the files it references, loaded on the daemon."""
+    """Load, inspect and render scenes."""
 
 
 def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, str],
@@ -46,9 +46,10 @@ def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, 
 @json_option
 def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, str], ...],
          display_name: str, as_json: bool) -> None:
-    """Upload SCENE.xml with the files it references and load it; prints the scene's name.
+    """Load a scene; prints its name.
 
-    Files the daemon already has (by content) are not uploaded again.
+    Uploads SCENE.xml and every file it references (relative to its directory), except
+    those the daemon already has.
     """
     if bool(scene_xml) == cornell_box:
         raise click.UsageError("give either SCENE.xml or --cornell-box")
@@ -64,7 +65,7 @@ def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, s
 @scene.command("list")
 @json_option
 def list_scenes(as_json: bool) -> None:
-    """The scenes you have loaded."""
+    """List your scenes."""
     client = connected()
     scenes = mc.list_all(client.scenes.ListScenes, pb.ListScenesRequest(), "scenes")
     if as_json:
@@ -79,7 +80,7 @@ def list_scenes(as_json: bool) -> None:
 @click.argument("name", metavar="SCENE", type=SCENE)
 @json_option
 def show(name: str, as_json: bool) -> None:
-    """A scene's sensors, overrides and files."""
+    """Show a scene's sensors, overrides and files."""
     s = connected().scenes.GetScene(pb.GetSceneRequest(name=name))
     if as_json:
         emit_json(s)
@@ -111,7 +112,10 @@ def delete(name: str) -> None:
 @click.argument("name", metavar="SCENE", type=SCENE)
 @json_option
 def params(name: str, as_json: bool) -> None:
-    """The parameters a job may optimize, with their ranges and default learning rates."""
+    """List the parameters a job may optimize.
+
+    With their kinds, shapes, values (when short), legal ranges and default learning rates.
+    """
     parameters = connected().scenes.ListSceneParameters(
         pb.ListSceneParametersRequest(name=name)).parameters
     if as_json:
@@ -119,8 +123,8 @@ def params(name: str, as_json: bool) -> None:
         return
     noted = any(p.discontinuous for p in parameters)  # gradients need a projective integrator
     table(["KEY", "KIND", "SHAPE", "VALUE", "MIN", "MAX", "LR"] + (["NOTE"] if noted else []),
-          [[p.key, mc.enum_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)), values(p.value),
-            number(p.min), number(p.max), number(p.default_learning_rate)]
+          [[p.key, mc.enum_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)),
+            values(p.value), number(p.min), number(p.max), number(p.default_learning_rate)]
            + (["discontinuous" if p.discontinuous else ""] if noted else [])
            for p in parameters])
 
@@ -141,7 +145,7 @@ def parameter_values(client: mc.Client, args) -> list[pb.ParameterValue]:
 @click.argument("name", metavar="SCENE", type=SCENE)
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="directory for the images (sensor<i>_render.png / .exr)")
-@click.option("--spp", type=int, callback=nonzero("--spp"),
+@click.option("--spp", type=int,
               help="samples per pixel [daemon default: 64]")
 @click.option("--set-param", "overrides", multiple=True, type=Values(npy=True),
               help="render with this value instead of the scene's: KEY=v1,v2,... or "
@@ -152,10 +156,16 @@ def parameter_values(client: mc.Client, args) -> list[pb.ParameterValue]:
 @json_option
 def render(name: str, out_dir: str, spp: int | None, overrides, sensors: tuple[int, ...],
            seed: int | None, as_json: bool) -> None:
-    """Render the scene's sensors and download the images (PNG for viewing, EXR linear)."""
+    """Render a scene and download the images.
+
+    One PNG (for viewing) and one linear EXR per sensor, optionally with parameter values
+    changed for this render only.
+    """
     client = connected()
     request = pb.RenderSceneRequest(name=name, parameters=parameter_values(client, overrides),
-                                    spp=spp or 0, sensors=sensors, seed=seed or 0)
+                                    sensors=sensors, seed=seed or 0)
+    if spp is not None:
+        request.spp = spp
     response = client.scenes.RenderScene(request)
     written = download_images(client, response.images, Path(out_dir))
     if as_json:

@@ -83,7 +83,7 @@ def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
         params.update()
         out = []
         for s in sensors:
-            img = mi.render(scene, sensor=s, spp=request.spp or 64, seed=request.seed)
+            img = mi.render(scene, sensor=s, spp=request.spp if request.HasField("spp") else 64, seed=request.seed)
             out.append(_image(put_blob, np.array(img, dtype=np.float32), s, "render"))
         return out
     finally:
