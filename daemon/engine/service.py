@@ -81,9 +81,12 @@ def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
             except ValueError as exc:
                 raise InvalidArgument(f"parameter '{key}': {exc}") from None
         params.update()
+        # A scene without <integrator> renders with Mitsuba's default, the path tracer.
+        integrator = scene.integrator() or mi.load_dict({"type": "path"})
         out = []
         for s in sensors:
-            img = mi.render(scene, sensor=s, spp=request.spp if request.HasField("spp") else 64, seed=request.seed)
+            img = mi.render(scene, sensor=s, integrator=integrator, seed=request.seed,
+                            spp=request.spp if request.HasField("spp") else 64)
             out.append(_image(put_blob, np.array(img, dtype=np.float32), s, "render"))
         return out
     finally:

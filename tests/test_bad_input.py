@@ -1,0 +1,148 @@
+"""Bad input gets the right status code and a message naming the culprit, and the daemon keeps
+serving everyone else."""
+
+from __future__ import annotations
+
+import grpc
+import pytest
+
+from matopt.v1 import matopt_pb2 as pb
+
+from scenes import MESH_SCENE, QUAD_OBJ, create_scene, upload
+
+
+def rpc_error(call, *args) -> grpc.RpcError:
+    with pytest.raises(grpc.RpcError) as err:
+        call(*args)
+    return err.value
+
+
+@pytest.fixture(scope="module")
+def cornell(stubs):
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32", "resy": "32"}))
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=16)).images[0]
+    return scene, ref
+
+
+def job_request(scene, refs, keys=("red.reflectance.value",), **spec):
+    return pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, references=refs,
+        parameters=[pb.ParameterSpec(key=k) for k in keys], **spec))
+
+
+@pytest.fixture(autouse=True)
+def still_serving(stubs):
+    yield
+    assert stubs.server.GetServerInfo(pb.GetServerInfoRequest()).variant
+
+
+def test_malformed_xml_names_the_file_and_line(stubs):
+    err = rpc_error(create_scene, stubs, {"broken.xml": b"<scene version='3.0.0'><shape>"},
+                    "broken.xml")
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "malformed XML in 'broken.xml'" in err.details() and "line 1" in err.details()
+
+
+def test_missing_referenced_file_is_named(stubs):
+    err = rpc_error(create_scene, stubs, {"scene.xml": MESH_SCENE.encode()}, "scene.xml")
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "'scene.xml' references 'meshes\\quad.obj'" in err.details()
+    assert "not in the bundle" in err.details()
+
+
+def test_reference_leaving_the_bundle_is_refused(stubs):
+    xml = MESH_SCENE.replace("meshes\\quad.obj", "../../etc/quad.obj").encode()
+    err = rpc_error(create_scene, stubs, {"scene.xml": xml, "quad.obj": QUAD_OBJ.encode()},
+                    "scene.xml")
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "'../../etc/quad.obj'" in err.details() and "leaves the scene bundle" in err.details()
+
+
+def test_bundle_path_leaving_the_bundle_is_refused(stubs):
+    sha = upload(stubs, QUAD_OBJ.encode())
+    err = rpc_error(stubs.scenes.CreateScene, pb.CreateSceneRequest(
+        main_file="scene.xml", files=[pb.BundleFile(path="../evil.obj", sha256=sha)]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "'../evil.obj'" in err.details()
+
+
+def test_scene_mitsuba_rejects_reports_mitsubas_reason(stubs):
+    xml = b"<scene version='3.0.0'><shape type='no_such_plugin'/></scene>"
+    err = rpc_error(create_scene, stubs, {"odd.xml": xml}, "odd.xml")
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "Mitsuba cannot load 'odd.xml'" in err.details() and "no_such_plugin" in err.details()
+
+
+def test_wrong_number_of_reference_images(stubs, cornell):
+    scene, ref = cornell
+    two = [pb.Reference(blob=ref.exr_blob, filename="a.exr"),
+           pb.Reference(blob=ref.exr_blob, filename="b.exr")]
+    err = rpc_error(stubs.jobs.CreateJob, job_request(scene, two))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "got 2 reference image(s) for a scene with 1 sensor(s)" in err.details()
+
+
+def test_unreadable_image_is_named(stubs, cornell):
+    scene, _ = cornell
+    sha = upload(stubs, b"this is not an image at all")
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=f"blobs/{sha}", filename="holiday.png")]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "reference image 'holiday.png' cannot be read" in err.details()
+
+
+def test_unknown_parameter_key_suggests_the_right_one(stubs, cornell):
+    scene, ref = cornell
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=ref.exr_blob)], keys=["red.reflectance.valu"]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "unknown parameter key 'red.reflectance.valu'" in err.details()
+    assert "did you mean 'red.reflectance.value'" in err.details()
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("spp", 0, "spp must be >= 1, got 0"),
+    ("iterations", -3, "iterations must be >= 1, got -3"),
+])
+def test_bad_numbers(stubs, cornell, field, value, message):
+    scene, ref = cornell
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=ref.exr_blob)], **{field: value}))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert message in err.details()
+
+
+def test_range_outside_validity_and_wrong_initial_size(stubs, cornell):
+    scene, ref = cornell
+    req = job_request(scene, [pb.Reference(blob=ref.exr_blob)])
+    req.spec.parameters[0].max = 2.0
+    err = rpc_error(stubs.jobs.CreateJob, req)
+    assert "leaves its legal range [0.0, 1.0]" in err.details()
+    req = job_request(scene, [pb.Reference(blob=ref.exr_blob)])
+    req.spec.parameters[0].initial_value[:] = [0.1, 0.2]
+    err = rpc_error(stubs.jobs.CreateJob, req)
+    assert "has 2 component(s), expected 3" in err.details()
+
+
+def test_unknown_resources_are_not_found(stubs):
+    for call, req in (
+            (stubs.jobs.GetJob, pb.GetJobRequest(name="jobs/nope")),
+            (stubs.scenes.GetScene, pb.GetSceneRequest(name="scenes/nope")),
+            (lambda r: list(stubs.blobs.DownloadBlob(r)),
+             pb.DownloadBlobRequest(name="blobs/" + "a" * 64))):
+        err = rpc_error(call, req)
+        assert err.code() == grpc.StatusCode.NOT_FOUND
+        assert "nope" in err.details() or "a" * 64 in err.details()
+
+
+def test_failed_job_does_not_stop_others(stubs, cornell, tmp_path):
+    """A job whose engine work fails mid-run ends FAILED with the reason; the daemon goes on."""
+    scene, ref = cornell
+    # Reference in another aspect ratio: refused up front, before any job exists.
+    err = rpc_error(stubs.jobs.CreateJob, job_request(scene, [pb.Reference(
+        blob=stubs.scenes.RenderScene(pb.RenderSceneRequest(
+            name=stubs.scenes.CreateScene(pb.CreateSceneRequest(
+                overrides={"resx": "48", "resy": "24"})).name, spp=1)).images[0].exr_blob,
+        filename="wide.exr")]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "'wide.exr' is 48x24 but its sensor renders 32x32" in err.details()

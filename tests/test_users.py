@@ -1,0 +1,85 @@
+"""Several users on one daemon: tokens, and nobody sees or controls another's work."""
+
+from __future__ import annotations
+
+import grpc
+import pytest
+
+from matopt.v1 import matopt_pb2 as pb
+
+from conftest import TOKENS, Daemon, Stubs, wait_state
+
+
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory):
+    root = tmp_path_factory.mktemp("shared")
+    tokens = root / "tokens"
+    tokens.write_text("# token user\n" + "".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    d = Daemon(root / "data", tokens).start()
+    yield d
+    d.stop()
+
+
+def test_no_or_wrong_token_is_unauthenticated(shared):
+    for token in (None, "not-a-real-token-at-all"):
+        s = Stubs(shared.address, token)
+        with pytest.raises(grpc.RpcError) as err:
+            s.jobs.ListJobs(pb.ListJobsRequest())
+        assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        assert "Bearer" in err.value.details()
+        s.close()
+
+
+def test_health_needs_no_token(shared):
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+    channel = grpc.insecure_channel(shared.address)
+    status = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=""))
+    assert status.status == health_pb2.HealthCheckResponse.SERVING
+    channel.close()
+
+
+def test_users_see_and_control_only_their_own_jobs(shared):
+    alice, bob = Stubs(shared.address, TOKENS["alice"]), Stubs(shared.address, TOKENS["bob"])
+    assert alice.server.GetServerInfo(pb.GetServerInfoRequest()).user == "alice"
+    scene = alice.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32", "resy": "32"}))
+    ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=8)).images[0]
+    job = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, iterations=200, references=[pb.Reference(blob=ref.exr_blob)],
+        parameters=[pb.ParameterSpec(key="red.reflectance.value")])))
+
+    for call, req in ((bob.jobs.GetJob, pb.GetJobRequest(name=job.name)),
+                      (bob.jobs.CancelJob, pb.CancelJobRequest(name=job.name)),
+                      (bob.jobs.PauseJob, pb.PauseJobRequest(name=job.name)),
+                      (bob.jobs.DeleteJob, pb.DeleteJobRequest(name=job.name)),
+                      (bob.scenes.GetScene, pb.GetSceneRequest(name=scene.name)),
+                      (bob.scenes.ListSceneParameters,
+                       pb.ListSceneParametersRequest(name=scene.name))):
+        with pytest.raises(grpc.RpcError) as err:
+            call(req)
+        assert err.value.code() == grpc.StatusCode.NOT_FOUND, call
+    assert job.name not in [j.name for j in bob.jobs.ListJobs(pb.ListJobsRequest()).jobs]
+    assert job.name in [j.name for j in alice.jobs.ListJobs(pb.ListJobsRequest()).jobs]
+    # Bob's attempts changed nothing.
+    assert alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).state in (pb.QUEUED, pb.RUNNING)
+    alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+    wait_state(alice, job.name, (pb.CANCELLED,))
+    alice.close()
+    bob.close()
+
+
+def test_tokens_file_errors_name_the_line(tmp_path):
+    import subprocess, sys
+    bad = tmp_path / "tokens"
+    bad.write_text("short alice\n")
+    out = subprocess.run([sys.executable, "-m", "matoptd", "--tokens", str(bad), "--data-dir",
+                          str(tmp_path / "d")], capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0
+    assert f"{bad}:1: token for 'alice' is shorter than 16 characters" in out.stderr
+
+
+def test_refuses_public_address_without_tokens(tmp_path):
+    import subprocess, sys
+    out = subprocess.run([sys.executable, "-m", "matoptd", "--listen", "0.0.0.0:0",
+                          "--data-dir", str(tmp_path / "d")], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode != 0 and "without --tokens" in out.stderr
