@@ -28,8 +28,8 @@ TOKENS = {"alice": "alice-token-0123456789", "bob": "bob-token-0123456789ab"}
 class Daemon:
     """A matoptd process; ``restart()`` keeps its data dir."""
 
-    def __init__(self, data_dir: Path, tokens: Path | None = None) -> None:
-        self.data_dir, self.tokens = data_dir, tokens
+    def __init__(self, data_dir: Path, tokens: Path | None = None, *extra: str) -> None:
+        self.data_dir, self.tokens, self.extra = data_dir, tokens, list(extra)
         self.proc: subprocess.Popen | None = None
         self.port = 0
         self.log = data_dir.parent / f"{data_dir.name}.log"
@@ -45,6 +45,7 @@ class Daemon:
                "--data-dir", str(self.data_dir), "--port-file", str(port_file)]
         if self.tokens:
             cmd += ["--tokens", str(self.tokens)]
+        cmd += self.extra
         self.proc = subprocess.Popen(cmd, stdout=open(self.log, "ab"), stderr=subprocess.STDOUT)
         deadline = time.time() + 120
         while not port_file.exists():

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import grpc
 import pytest
 
 from matopt.v1 import matopt_pb2 as pb
 
 from conftest import TOKENS, Daemon, Stubs, wait_state
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +76,6 @@ def test_users_see_and_control_only_their_own_jobs(shared):
 
 
 def test_tokens_file_errors_name_the_line(tmp_path):
-    import subprocess, sys
     bad = tmp_path / "tokens"
     bad.write_text("short alice\n")
     out = subprocess.run([sys.executable, "-m", "matoptd", "--tokens", str(bad), "--data-dir",
@@ -78,8 +85,30 @@ def test_tokens_file_errors_name_the_line(tmp_path):
 
 
 def test_refuses_public_address_without_tokens(tmp_path):
-    import subprocess, sys
     out = subprocess.run([sys.executable, "-m", "matoptd", "--listen", "0.0.0.0:0",
                           "--data-dir", str(tmp_path / "d")], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode != 0 and "without --tokens" in out.stderr
+
+
+@pytest.mark.skipif(not shutil.which("openssl"), reason="needs openssl to make certificates")
+def test_tls_with_the_deploy_certificates(tmp_path):
+    """With --tls-cert/--tls-key the token only ever travels encrypted; clients need --tls-ca."""
+    certs = tmp_path / "certs"
+    subprocess.run(["bash", str(ROOT / "deploy" / "make-certs.sh"), "-o", str(certs),
+                    "localhost", "127.0.0.1"], check=True, capture_output=True, timeout=120)
+    tokens = tmp_path / "tokens"
+    tokens.write_text(f"{TOKENS['alice']} alice\n")
+    d = Daemon(tmp_path / "data", tokens, "--tls-cert", str(certs / "server.pem"),
+               "--tls-key", str(certs / "server.key")).start()
+    try:
+        base = [sys.executable, "-m", "matopt.cli", "--server", d.address,
+                "--token", TOKENS["alice"]]
+        ok = subprocess.run(base + ["--tls-ca", str(certs / "ca.pem"), "info", "--json"],
+                            capture_output=True, text=True, timeout=120)
+        assert ok.returncode == 0, ok.stderr
+        assert json.loads(ok.stdout)["user"] == "alice"
+        plain = subprocess.run(base + ["info"], capture_output=True, text=True, timeout=120)
+        assert plain.returncode != 0 and "cannot reach matoptd" in plain.stderr
+    finally:
+        d.stop()

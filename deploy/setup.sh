@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Sets up matopt in ./.venv on a fresh Debian/Ubuntu machine: the system packages it needs
+# (python3-venv, and libLLVM >= 16 for Dr.Jit's CPU backend: 1.5 aborts on LLVM 14/15), then
+# the package with the daemon and test extras. Safe to run again.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+sudo=""
+[ "$(id -u)" = 0 ] || sudo="sudo"
+
+have_llvm() {
+    ls /usr/lib/*/libLLVM*.so.1[6-9]* /usr/lib/*/libLLVM*.so.[2-9][0-9]* \
+       /usr/lib/*/libLLVM-1[6-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* >/dev/null 2>&1
+}
+
+missing=()
+python3 -c "import ensurepip, venv" >/dev/null 2>&1 || missing+=(python3-venv python3-pip)
+have_llvm || missing+=(libllvm19)
+if [ ${#missing[@]} -gt 0 ]; then
+    echo "setup: installing ${missing[*]} with apt-get"
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "${missing[@]}"
+fi
+
+[ -x .venv/bin/python ] || python3 -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[daemon,test]"
+llvm=$(.venv/bin/python -c "from matoptd.engine.variant import find_libllvm; print(find_libllvm() or '')")
+echo "setup: ready in .venv (Dr.Jit's CPU backend will use ${llvm:-no libLLVM >= 16 found})"
