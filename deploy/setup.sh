@@ -8,9 +8,13 @@ cd "$(dirname "$0")/.."
 sudo=""
 [ "$(id -u)" = 0 ] || sudo="sudo"
 
-have_llvm() {
-    ls /usr/lib/*/libLLVM*.so.1[6-9]* /usr/lib/*/libLLVM*.so.[2-9][0-9]* \
-       /usr/lib/*/libLLVM-1[6-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* >/dev/null 2>&1
+have_llvm() {  # libLLVM.so.19.1, libLLVM-19.so, ...: any major version >= 16
+    local f v
+    for f in /usr/lib/*/libLLVM*.so* /usr/lib64/libLLVM*.so*; do
+        v=$(basename "$f" | sed -nE 's/^libLLVM[-.]?(so\.)?([0-9]+).*/\2/p')
+        [ -n "$v" ] && [ "$v" -ge 16 ] && return 0
+    done
+    return 1
 }
 
 missing=()
