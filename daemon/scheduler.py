@@ -44,6 +44,7 @@ class Run:
 
     opt: Any  # engine.optimize.Optimization
     shapes: dict[str, list[int]]
+    kinds: dict[str, int]
     control: str = ""  # "", "pause" or "cancel"
 
 
@@ -337,14 +338,16 @@ class Scheduler:
         checkpoint = self.store.blob_file(blob).read_bytes() if blob else None
         opt = self.engine().start_job(self.load_scene(scene), job.spec, refs,
                                       self._read_blob, checkpoint)
-        params = {p.key: list(p.shape)
+        params = {p.key: p
                   for p in self.store.scene_parameters(job.owner, job.spec.scene).parameters}
-        run = Run(opt, {k: params.get(k, []) for k in opt.settings})
+        run = Run(opt, {k: list(params[k].shape) for k in opt.settings},
+                  {k: params[k].kind for k in opt.settings})
         with self._lock:
             self._runs[job.name] = run
             job.state = pb.RUNNING
             job.integrator, job.integrator_reason = opt.integrator_name, opt.integrator_reason
             job.sensors_rendered[:] = sorted(refs)
+            job.notes[:] = opt.notes
             if job.resumed_from == "pending":
                 job.resumed_from = (f"checkpoint at iteration {opt.iteration}" if checkpoint
                                     else "from the start")
@@ -357,7 +360,11 @@ class Scheduler:
         step = opt.step()
         record = pb.IterationRecord(
             iteration=step.iteration, seconds=opt.elapsed, loss=step.loss,
-            parameters=self.engine().values_to_proto(step.values, run.shapes, None))
+            parameters=self.engine().values_to_proto(step.values, run.shapes, None),
+            errors=[pb.ParameterError(key=k, max_abs=e[0], rmse=e[1], relative=e[2])
+                    for k, e in step.errors.items()])
+        if step.image_error is not None:
+            record.image_error = step.image_error
         self.store.add_iteration(job.name, record)
         with self._lock:
             job.iteration = step.iteration + 1
@@ -366,6 +373,7 @@ class Scheduler:
             job.elapsed_seconds = opt.elapsed
             job.nonfinite_gradient_steps = opt.nonfinite_steps
             job.skipped_steps = opt.skipped_steps
+            job.clamped_components = opt.clamped
             self.store.put_job(job)
         self._publish(job.name, pb.JobEvent(iteration=record))
         if step.done:
@@ -384,7 +392,8 @@ class Scheduler:
         elif history:
             h = history[-1]
             chosen.append((pb.LAST, h.iteration, h.loss, opt.values()))
-        for res in self.engine().results(opt, job.name, chosen, run.shapes, self.store.put_blob):
+        for res in self.engine().results(opt, job.name, chosen, run.shapes, run.kinds,
+                                          self.store.put_blob):
             self.store.put_result(res)
         with self._lock:
             self._drop(job.name)

@@ -252,8 +252,14 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
         raise InvalidArgument(f"spp must be >= 1, got {spec.spp}")
     if spec.HasField("min_error") and not math.isfinite(spec.min_error):
         raise InvalidArgument(f"min_error must be finite, got {spec.min_error}")
-    if spec.loss not in (pb.LOSS_UNSPECIFIED, pb.MSE, pb.DUAL_BUFFER):
+    if spec.loss not in pb.Loss.values():
         raise InvalidArgument(f"unknown loss {spec.loss}")
+    if spec.loss == pb.MEAN_BIAS_ERROR:
+        raise InvalidArgument("mean_bias_error is a diagnostic, not an objective: minimizing "
+                              "it drives the render to black; use mse, mae or dual_buffer")
+    for field in ("resolution", "image_error_every", "image_error_spp"):
+        if getattr(spec, field) < 0:
+            raise InvalidArgument(f"{field} must be >= 0, got {getattr(spec, field)}")
     out.iterations = spec.iterations if spec.HasField("iterations") else DEFAULT_ITERATIONS
     out.spp = spec.spp if spec.HasField("spp") else DEFAULT_SPP
     out.min_error = spec.min_error if spec.HasField("min_error") else DEFAULT_MIN_ERROR
@@ -317,7 +323,18 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
                                   f"component(s), expected {size}")
         if any(not math.isfinite(v) for v in p.initial_value):
             raise InvalidArgument(f"initial value of '{p.key}' is not finite")
+        if p.initial_blob:
+            store.blob_file(p.initial_blob)
         p.learning_rate, p.min, p.max = lr, lo, hi
+    for t in out.ground_truth:
+        if t.key not in params:
+            raise InvalidArgument(f"ground truth for unknown parameter key '{t.key}'")
+        size = math.prod(params[t.key].shape) if params[t.key].shape else 1
+        if t.blob:
+            store.blob_file(t.blob)
+        elif len(t.value) != size:
+            raise InvalidArgument(f"ground truth of '{t.key}' has {len(t.value)} "
+                                  f"component(s), expected {size}")
     return out
 
 
@@ -337,10 +354,8 @@ class Jobs(rpc.JobsServicer):
 
         def check_references():
             engine = self.scheduler.engine()
-            for i, r in enumerate(spec.references):
-                s = scene.sensors[r.sensor if r.HasField("sensor") else i]
-                engine.check_reference(self.store.blob_file(r.blob), r.filename or r.blob,
-                                       (s.width, s.height))
+            for r in spec.references:
+                engine.check_reference(self.store.blob_file(r.blob), r.filename or r.blob)
 
         await self.scheduler.call(check_references)
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,

@@ -125,7 +125,7 @@ def test_best_result_holds_the_parameters_that_produced_its_loss(stubs):
     assert best.loss == min(r.loss for r in history.values())
     recorded = {p.key: list(p.value) for p in history[best.iteration].parameters}
     assert {p.key: list(p.value) for p in best.parameters} == recorded
-    assert sorted(i.role for i in best.images) == ["initial", "optimized", "reference"]
+    assert sorted(i.role for i in best.images) == ["error", "initial", "optimized", "reference"]
     last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
     assert last.iteration == 7
 
@@ -174,3 +174,47 @@ def test_list_jobs_pages(stubs):
         if not token:
             break
     assert set(names) <= set(seen)
+
+
+def test_film_follows_the_reference_aspect_ratio_and_nan_pixels_are_masked(stubs, tmp_path):
+    """A 2:1 reference for a square film: the sensor renders 2:1 at the film's height, or at
+    the job's resolution; NaN/Inf pixels are masked out and counted, never poisoning the loss."""
+    wide = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "48", "resy": "24"}))
+    exr = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=wide.name, spp=16)).images[0]
+    data = b"".join(r.chunk for r in stubs.blobs.DownloadBlob(
+        pb.DownloadBlobRequest(name=exr.exr_blob)))
+    import mitsuba as mi  # the test writes an EXR with holes; clients never need mitsuba
+    mi.set_variant("scalar_rgb")
+    (tmp_path / "w.exr").write_bytes(data)
+    pixels = __import__("numpy").array(mi.Bitmap(str(tmp_path / "w.exr")))
+    pixels[0, :5] = float("nan")
+    pixels[1, :3] = float("inf")
+    mi.Bitmap(pixels).write(str(tmp_path / "holes.exr"))
+    sha = upload(stubs, (tmp_path / "holes.exr").read_bytes())
+
+    square = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32", "resy": "32"}))
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=square.name, iterations=3, resolution=20,
+        references=[pb.Reference(blob=f"blobs/{sha}", filename="holes.exr")],
+        parameters=[pb.ParameterSpec(key="red.reflectance.value")])))
+    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
+    assert done.state == pb.SUCCEEDED, done.error
+    assert any("8 NaN/Inf pixel(s) masked" in n for n in done.notes), done.notes
+    assert any("renders 40x20" in n for n in done.notes), done.notes
+    history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+    assert all(r.loss == r.loss for r in history)  # finite
+    image = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name)).images[0]
+    assert (image.width, image.height) == (40, 20)
+
+
+def test_ground_truth_gives_parameter_errors_and_image_error(stubs):
+    _, job = _cornell_job(stubs, 6, ground_truth=[
+        pb.ParameterValue(key="red.reflectance.value", value=[0.570068, 0.0430135, 0.0443706])],
+        image_error_every=2, image_error_spp=8)
+    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+    first = history[0].errors[0]
+    assert first.key == "red.reflectance.value"
+    assert first.max_abs == pytest.approx(0.5 - 0.0430135, abs=1e-5)  # started from grey
+    assert [r.HasField("image_error") for r in history] == [True, False, True, False, True, True]
+    assert all(r.image_error > 0 for r in history if r.HasField("image_error"))

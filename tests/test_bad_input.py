@@ -135,14 +135,9 @@ def test_unknown_resources_are_not_found(stubs):
         assert "nope" in err.details() or "a" * 64 in err.details()
 
 
-def test_failed_job_does_not_stop_others(stubs, cornell, tmp_path):
-    """A job whose engine work fails mid-run ends FAILED with the reason; the daemon goes on."""
+def test_mean_bias_error_is_refused_as_an_objective(stubs, cornell):
     scene, ref = cornell
-    # Reference in another aspect ratio: refused up front, before any job exists.
-    err = rpc_error(stubs.jobs.CreateJob, job_request(scene, [pb.Reference(
-        blob=stubs.scenes.RenderScene(pb.RenderSceneRequest(
-            name=stubs.scenes.CreateScene(pb.CreateSceneRequest(
-                overrides={"resx": "48", "resy": "24"})).name, spp=1)).images[0].exr_blob,
-        filename="wide.exr")]))
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=ref.exr_blob)], loss=pb.MEAN_BIAS_ERROR))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert "'wide.exr' is 48x24 but its sensor renders 32x32" in err.details()
+    assert "diagnostic, not an objective" in err.details()

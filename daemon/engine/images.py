@@ -13,11 +13,10 @@ import numpy as np
 from ..errors import InvalidArgument
 
 
-def read_reference(path: str, name: str, size: tuple[int, int]) -> mi.TensorXf:
-    """Reads PNG/JPEG (sRGB, linearized) or EXR (already linear) as an RGB float tensor.
+def read_reference(path: str, name: str) -> np.ndarray:
+    """Reads PNG/JPEG (sRGB, linearized) or EXR (already linear) as an (H, W, 3) float array.
 
-    Nothing is clamped: HDR references keep their highlights. A reference of another size but
-    the same aspect ratio is resampled to the film; another aspect ratio is refused.
+    Nothing is clamped: HDR references keep their highlights.
     """
     try:
         bitmap = mi.Bitmap(path)
@@ -26,13 +25,23 @@ def read_reference(path: str, name: str, size: tuple[int, int]) -> mi.TensorXf:
                               f"OpenEXR: {str(exc).strip().splitlines()[-1]}") from None
     bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
                             srgb_gamma=False)
-    w, h = bitmap.size()
-    if (w, h) != tuple(size):
-        if abs(w / h - size[0] / size[1]) > 0.01:
-            raise InvalidArgument(f"reference image '{name}' is {w}x{h} but its sensor renders "
-                                  f"{size[0]}x{size[1]}: the aspect ratios differ")
-        bitmap = bitmap.resample([int(size[0]), int(size[1])])
-    return mi.TensorXf(np.array(bitmap, dtype=np.float32))
+    return np.array(bitmap, dtype=np.float32)
+
+
+def fit(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resamples an (H, W, 3) image to ``size`` = (width, height) when it differs."""
+    if (image.shape[1], image.shape[0]) == tuple(size):
+        return image
+    finite = np.where(np.isfinite(image), image, 0.0).astype(np.float32)
+    out = np.array(mi.Bitmap(finite, mi.Bitmap.PixelFormat.RGB).resample(
+        [int(size[0]), int(size[1])]), dtype=np.float32)
+    # Pixels that were NaN/Inf stay marked, at the nearest position.
+    bad = ~np.isfinite(image).all(axis=2)
+    if bad.any():
+        ys = (np.arange(size[1]) * image.shape[0] // size[1])[:, None]
+        xs = (np.arange(size[0]) * image.shape[1] // size[0])[None, :]
+        out[bad[ys, xs]] = np.nan
+    return out
 
 
 def _encode(bitmap: mi.Bitmap, suffix: str) -> bytes:

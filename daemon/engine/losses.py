@@ -1,5 +1,10 @@
-"""Image losses. Each takes the renders of one sensor and its reference and returns a scalar
-Dr.Jit value with gradients. ``renders`` says how many independent renders a loss needs."""
+"""Image losses. Each maps the renders of one sensor, its reference and a pixel weight (0 where
+the reference is NaN/Inf, 1 elsewhere) to a scalar Dr.Jit tensor with gradients. ``renders``
+says how many independent renders a loss needs.
+
+Means are weighted: mean_w(x) = sum(w * x) / sum(w), so masked pixels neither count nor
+dilute the loss.
+"""
 
 from __future__ import annotations
 
@@ -11,27 +16,79 @@ import mitsuba as mi
 
 from matopt.v1 import matopt_pb2 as pb
 
+Tensor = "mi.TensorXf"  # annotations only: the class exists once a variant is set
+EPSILON = 1e-3  # keeps brightness normalization finite on black images
+
 
 @dataclass(frozen=True)
 class Loss:
     name: str
     renders: int
-    fn: Callable[[list[mi.TensorXf], mi.TensorXf], mi.TensorXf]  # shape ()
+    fn: Callable[..., "mi.TensorXf"]  # (renders, reference, weight) -> shape ()
+    objective: bool = True  # False: a diagnostic that gradient descent would abuse
 
 
-def _mse(images: list[mi.TensorXf], ref: mi.TensorXf) -> mi.TensorXf:
-    # L2 = mean over pixels and channels of (I - R)^2.
-    return dr.mean(dr.square(images[0] - ref), axis=None)
+def _mean(x: Tensor, w: Tensor) -> Tensor:
+    return dr.sum(w * x, axis=None) / dr.maximum(dr.sum(w, axis=None), 1.0)
 
 
-def _dual_buffer(images: list[mi.TensorXf], ref: mi.TensorXf) -> mi.TensorXf:
+def _mse(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
+    # L2 = mean_w (I - R)^2
+    return _mean(dr.square(images[0] - ref), w)
+
+
+def _dual_buffer(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
     # Deng et al. 2022: with two renders A, B of independent noise,
     #   E[(A - R)(B - R)] = (E[A] - R)^2,
     # so the noise that biases plain MSE at low spp cancels. A single estimate can be < 0.
-    return dr.mean((images[0] - ref) * (images[1] - ref), axis=None)
+    return _mean((images[0] - ref) * (images[1] - ref), w)
+
+
+def _brightness_independent(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
+    # MSE of I / (mean I + eps) against R / (mean R + eps): only relative shading matters.
+    a = images[0] / (_mean(images[0], w) + EPSILON)
+    b = ref / (_mean(ref, w) + EPSILON)
+    return _mean(dr.square(a - b), w)
+
+
+def _mae(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
+    return _mean(dr.abs(images[0] - ref), w)
+
+
+def _mean_bias(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
+    return _mean(images[0] - ref, w)
+
+
+def half(t: Tensor) -> Tensor:
+    """2x2 box downsampling of an (H, W, C) tensor (odd rows/columns dropped); differentiable."""
+    h, w, c = (int(s) for s in t.shape)
+    h2, w2 = h // 2, w // 2
+    i = dr.arange(mi.UInt32, h2 * w2 * c)
+    ch, rest = i % c, i // c
+    x, y = rest % w2, rest // w2
+    total = 0
+    for dy in (0, 1):
+        for dx in (0, 1):
+            total += dr.gather(mi.Float, t.array, ((2 * y + dy) * w + 2 * x + dx) * c + ch)
+    return mi.TensorXf(total * 0.25, (h2, w2, c))
+
+
+def _multiscale(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
+    # sum over pyramid levels (full, 1/2, 1/4, ... down to 8 px) of the weighted MSE. Coarse
+    # levels see low-frequency errors with little noise; the full level keeps detail.
+    img, total = images[0], _mse(images, ref, w)
+    while min(int(s) for s in img.shape[:2]) >= 16:
+        img, ref, w = half(img), half(ref), half(w)
+        total += _mse([img], ref, w)
+    return total
 
 
 LOSSES = {
     pb.MSE: Loss("mse", 1, _mse),
     pb.DUAL_BUFFER: Loss("dual_buffer", 2, _dual_buffer),
+    pb.BRIGHTNESS_INDEPENDENT_MSE: Loss("brightness_independent_mse", 1,
+                                        _brightness_independent),
+    pb.MAE: Loss("mae", 1, _mae),
+    pb.MEAN_BIAS_ERROR: Loss("mean_bias_error", 1, _mean_bias, objective=False),
+    pb.MULTISCALE_MSE: Loss("multiscale_mse", 1, _multiscale),
 }

@@ -5,13 +5,15 @@ An iteration i renders every sensor that has a reference with the parameters the
 the loss L_i (mean over those sensors), records (i, L_i, theta_i), and then, unless this was
 the last iteration or L_i < min_error, back-propagates and steps to theta_{i+1}. So the best
 iteration's parameters are exactly the ones that produced its loss, and no step is taken whose
-result would never be rendered.
+result would never be rendered. With ``step_per_sensor`` (the thesis tool's way) each sensor's
+gradient is applied as soon as it is known; by default they accumulate into one step.
 
 Guards (Dr.Jit 1.5's dr.clip propagates NaN, and Adam has no NaN guard of its own):
 - a gradient component that is NaN/Inf is set to 0 before the step; with ``mask_updates``
   Adam then leaves that component and its moments alone. Counted in ``nonfinite_steps``.
 - a loss that is NaN/Inf skips the step entirely. Counted in ``skipped_steps``.
-- after the step each parameter is clipped into its [min, max].
+- after the step each parameter is clipped into its [min, max]; components the step pushed
+  out are counted in ``clamped``.
 """
 
 from __future__ import annotations
@@ -42,12 +44,35 @@ class Setting:
 
 
 @dataclass
+class Reference:
+    image: mi.TensorXf   # (H, W, 3), linear; masked pixels hold 0
+    weight: mi.TensorXf  # (H, W, 3): 0 where the reference was NaN/Inf, else 1
+
+
+@dataclass
+class Config:
+    loss: int
+    iterations: int
+    min_error: float
+    spp: int
+    seed: int
+    cosine: bool = True
+    step_per_sensor: bool = False
+    clamp: bool = False
+    truth: dict[str, np.ndarray] = field(default_factory=dict)
+    image_error_every: int = 0
+    image_error_spp: int = 64
+
+
+@dataclass
 class Step:
     iteration: int
     loss: float
     values: dict[str, np.ndarray]  # theta_i (all selected parameters)
     done: bool
     stop_reason: str = ""
+    errors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    image_error: float | None = None
 
 
 @dataclass
@@ -61,16 +86,23 @@ def _seed(base: int, iteration: int, slot: int, slots: int) -> int:
     return (base * 1_000_003 + iteration * slots + slot) % 2**32
 
 
+def parameter_error(value: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
+    """(max |v - t|, rmse, rmse / rms(t)); relative falls back to rmse when the truth is 0."""
+    d = value.astype(np.float64) - truth
+    rmse = float(np.sqrt(np.mean(d * d)))
+    scale = float(np.sqrt(np.mean(truth.astype(np.float64) ** 2)))
+    return float(np.max(np.abs(d))), rmse, rmse / scale if scale > 0 else rmse
+
+
 class Optimization:
     def __init__(self, scene: mi.Scene, settings: list[Setting],
-                 references: dict[int, mi.TensorXf], *, loss: int, iterations: int,
-                 min_error: float, spp: int, seed: int, cosine: bool = True) -> None:
+                 references: dict[int, Reference], config: Config) -> None:
         self.scene = scene
         self.settings = {s.key: s for s in settings}
         self.references = dict(sorted(references.items()))
-        self.loss = LOSSES[loss]
-        self.iterations, self.min_error, self.spp, self.seed = iterations, min_error, spp, seed
-        self.cosine = cosine
+        self.config = config
+        self.loss = LOSSES[config.loss]
+        self.spp = config.spp
         self.integrator, self.integrator_name, self.integrator_reason = choose(
             scene, list(self.settings))
 
@@ -90,53 +122,86 @@ class Optimization:
         self.best = Best()
         self.nonfinite_steps = 0
         self.skipped_steps = 0
+        self.clamped = 0
 
     # -- the loop ---------------------------------------------------------------------------
 
     def values(self) -> dict[str, np.ndarray]:
         return {k: parameters.flat(self.opt[k]) for k in self.settings}
 
+    def _sensor_loss(self, i: int, n: int, sensor: int, ref: Reference):
+        renders = self.loss.renders
+        slots = len(self.references) * renders
+        images = []
+        for b in range(renders):
+            img = mi.render(self.scene, self.params, sensor=sensor, spp=self.spp,
+                            integrator=self.integrator,
+                            seed=_seed(self.config.seed, i, n * renders + b, slots))
+            img = img[..., :3] if img.shape[2] > 3 else img
+            images.append(dr.clip(img, 0.0, 1.0) if self.config.clamp else img)
+        target = dr.clip(ref.image, 0.0, 1.0) if self.config.clamp else ref.image
+        return self.loss.fn(images, target, ref.weight)
+
     def step(self) -> Step:
         start = time.perf_counter()
-        i = self.iteration
-        slots = len(self.references) * self.loss.renders
-        total = 0
-        for n, (sensor, ref) in enumerate(self.references.items()):
-            images = [mi.render(self.scene, self.params, sensor=sensor, spp=self.spp,
-                                integrator=self.integrator,
-                                seed=_seed(self.seed, i, n * self.loss.renders + b, slots))
-                      for b in range(self.loss.renders)]
-            total += self.loss.fn([img[..., :3] if img.shape[2] > 3 else img
-                                   for img in images], ref)
-        total /= len(self.references)
-        loss = float(total.array[0])
+        i, c = self.iteration, self.config
+        last = i + 1 >= c.iterations
         theta = self.values()
+        if c.step_per_sensor and len(self.references) > 1:
+            loss = self._step_per_sensor(i, last)
+        else:
+            total = 0
+            for n, (sensor, ref) in enumerate(self.references.items()):
+                total += self._sensor_loss(i, n, sensor, ref)
+            total /= len(self.references)
+            loss = float(total.array[0])
+            if not (last or self._reached(loss)):
+                self._descend(total, loss, i)
         if math.isfinite(loss) and loss < self.best.loss:
             self.best = Best(i, loss, theta)
-
-        last = i + 1 >= self.iterations
-        reached = math.isfinite(loss) and loss < self.min_error
-        if not (last or reached):
-            if math.isfinite(loss):
-                self._schedule(i)
-                dr.backward(total)
-                self._sanitize_gradients()
-                self.opt.step()
-                for key, s in self.settings.items():
-                    self.opt[key] = dr.clip(self.opt[key], s.lo, s.hi)
-                self.params.update(self.opt)
-            else:
-                self.skipped_steps += 1
+        reached = self._reached(loss)
         self.iteration = i + 1
         self.elapsed += time.perf_counter() - start
-        reason = "min_error" if reached else "iterations" if last else ""
-        return Step(i, loss, theta, bool(reason), reason)
+        out = Step(i, loss, theta, last or reached,
+                   "min_error" if reached else "iterations" if last else "",
+                   {k: parameter_error(theta[k], t) for k, t in c.truth.items() if k in theta})
+        if c.image_error_every and (i % c.image_error_every == 0 or out.done):
+            out.image_error = self.image_error(theta)  # off the clock
+        return out
+
+    def _reached(self, loss: float) -> bool:
+        return math.isfinite(loss) and loss < self.config.min_error
+
+    def _step_per_sensor(self, i: int, last: bool) -> float:
+        losses = []
+        for n, (sensor, ref) in enumerate(self.references.items()):
+            total = self._sensor_loss(i, n, sensor, ref)
+            losses.append(float(total.array[0]))
+            if not last:
+                self._descend(total, losses[-1], i)
+        return float(np.mean(losses))
+
+    def _descend(self, total, loss: float, i: int) -> None:
+        if not math.isfinite(loss):
+            self.skipped_steps += 1
+            return
+        self._schedule(i)
+        dr.backward(total)
+        self._sanitize_gradients()
+        self.opt.step()
+        for key, s in self.settings.items():
+            value = self.opt[key]
+            outside = dr.count((value < s.lo) | (value > s.hi), axis=None)
+            self.clamped += int(np.asarray(outside).sum())
+            self.opt[key] = dr.clip(value, s.lo, s.hi)
+        self.params.update(self.opt)
 
     def _schedule(self, i: int) -> None:
         # lr_i = lr * (0.1 + 0.9 * (1 + cos(pi * i / (N - 1))) / 2)
-        if not self.cosine or self.iterations < 2:
+        n = self.config.iterations
+        if not self.config.cosine or n < 2:
             return
-        f = 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (self.iterations - 1)))
+        f = 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (n - 1)))
         self.opt.set_learning_rate({k: s.learning_rate * f for k, s in self.settings.items()})
 
     def _sanitize_gradients(self) -> None:
@@ -150,7 +215,7 @@ class Optimization:
                 dr.set_grad(value, dr.select(finite, grad, 0))
         self.nonfinite_steps += bad_step
 
-    # -- results ----------------------------------------------------------------------------
+    # -- renders off the clock --------------------------------------------------------------
 
     def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
         """A primal render with the selected parameters set to ``values`` (then restored)."""
@@ -161,12 +226,25 @@ class Optimization:
         try:
             with dr.suspend_grad():
                 img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
-                                integrator=self.integrator, seed=_seed(self.seed, 0, 0, 1) + 7)
-            return np.array(img, dtype=np.float32)
+                                integrator=self.integrator, seed=_seed(self.config.seed, 0, 0, 1) + 7)
+            return np.array(img, dtype=np.float32)[..., :3]
         finally:
             for key, v in current.items():
                 self.params[key] = parameters.assign(self.params[key], v)
             self.params.update(self.opt)
+
+    def image_error(self, values: dict[str, np.ndarray]) -> float:
+        """RMSE of renders at ``image_error_spp`` against the references (masked pixels out),
+        over all sensors; its time is not counted as optimizing time."""
+        began = time.perf_counter()
+        se = n = 0.0
+        for sensor, ref in self.references.items():
+            img = self.render(values, sensor, self.config.image_error_spp)
+            w = np.asarray(ref.weight)
+            se += float(np.sum(w * (img - np.asarray(ref.image)) ** 2))
+            n += float(np.sum(w))
+        self.elapsed -= time.perf_counter() - began
+        return math.sqrt(se / max(n, 1.0))
 
     # -- checkpoints ------------------------------------------------------------------------
 
@@ -175,7 +253,8 @@ class Optimization:
         best iteration so far, counters and the clock."""
         arrays: dict[str, np.ndarray] = {
             "meta": np.array([self.iteration, self.elapsed, self.best.iteration, self.best.loss,
-                              self.nonfinite_steps, self.skipped_steps], dtype=np.float64)}
+                              self.nonfinite_steps, self.skipped_steps, self.clamped],
+                             dtype=np.float64)}
         for n, key in enumerate(self.settings):
             value, _, _, (t, m, v, _) = self.opt.state[key]
             arrays[f"value{n}"] = parameters.flat(value)
@@ -192,9 +271,10 @@ class Optimization:
         z = np.load(io.BytesIO(data))
         if list(z["keys"]) != list(self.settings):
             raise ValueError("checkpoint holds other parameters than the job")
-        it, elapsed, best_it, best_loss, nonfinite, skipped = z["meta"].tolist()
+        it, elapsed, best_it, best_loss, nonfinite, skipped, clamped = z["meta"].tolist()
         self.iteration, self.elapsed = int(it), float(elapsed)
         self.nonfinite_steps, self.skipped_steps = int(nonfinite), int(skipped)
+        self.clamped = int(clamped)
         best = {}
         for n, key in enumerate(self.settings):
             self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])

@@ -19,7 +19,7 @@ from matopt.v1 import matopt_pb2 as pb
 
 from ..errors import InvalidArgument
 from . import images, parameters, scene as scenes, variant
-from .optimize import Optimization, Setting
+from .optimize import Config, Optimization, Reference, Setting
 
 PutBlob = Callable[[bytes], str]
 RESULT_SPP = 64  # renders in results are off the clock; enough samples to look at
@@ -51,13 +51,7 @@ def _image(put_blob: PutBlob, pixels: np.ndarray, sensor: int, role: str) -> pb.
 
 def _decode_values(values: list[pb.ParameterValue], read_blob: Callable[[str], bytes]
                    ) -> dict[str, np.ndarray]:
-    out = {}
-    for v in values:
-        if v.blob:
-            out[v.key] = np.load(io.BytesIO(read_blob(v.blob))).ravel()
-        else:
-            out[v.key] = np.asarray(v.value, dtype=np.float32)
-    return out
+    return {v.key: _array(v, read_blob, v.blob, v.value) for v in values}
 
 
 def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
@@ -75,6 +69,8 @@ def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
         for key, v in overrides.items():
             if key not in params:
                 raise InvalidArgument(f"unknown parameter key '{key}'")
+            if v is None:
+                raise InvalidArgument(f"parameter '{key}' has neither values nor a blob")
             saved[key] = parameters.flat(params[key])
             try:
                 params[key] = parameters.assign(params[key], v)
@@ -95,26 +91,77 @@ def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
         params.update()
 
 
-def check_reference(path: Path, name: str, size: tuple[int, int]) -> None:
-    images.read_reference(str(path), name, size)
+def check_reference(path: Path, name: str) -> None:
+    images.read_reference(str(path), name)
+
+
+def _array(value: pb.ParameterValue | pb.ParameterSpec, read_blob: Callable[[str], bytes],
+           blob: str, values) -> np.ndarray | None:
+    if blob:
+        return np.load(io.BytesIO(read_blob(blob))).astype(np.float32).ravel()
+    return np.asarray(values, dtype=np.float32) if len(values) else None
+
+
+def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
+    key = f"{sensor.id()}.film.size"
+    return key if key in params else None
+
+
+def _references(scene: mi.Scene, spec: pb.JobSpec, paths: dict[int, tuple[Path, str]],
+                notes: list[str]) -> dict[int, Reference]:
+    """Reads each reference and sizes its sensor's film: height from ``spec.resolution`` (or
+    the film's own), width from the reference's aspect ratio. Each sensor keeps its own size.
+    NaN/Inf pixels are masked out of every loss and counted."""
+    params = mi.traverse(scene)
+    sensors = scene.sensors()
+    refs = {}
+    for index, (path, name) in paths.items():
+        image = images.read_reference(str(path), name)
+        film = sensors[index].film().crop_size()
+        height = spec.resolution or int(film[1])
+        width = max(1, round(height * image.shape[1] / image.shape[0]))
+        if (width, height) != (int(film[0]), int(film[1])):
+            key = _film_key(params, sensors[index])
+            if key is None:
+                raise InvalidArgument(f"sensor {index}'s film cannot be resized to "
+                                      f"{width}x{height} for reference '{name}'")
+            params[key] = mi.ScalarVector2u(width, height)
+            params.update()
+            notes.append(f"sensor {index} renders {width}x{height} (film was "
+                         f"{int(film[0])}x{int(film[1])}) to follow reference '{name}'")
+        image = images.fit(image, (width, height))
+        valid = np.isfinite(image).all(axis=2, keepdims=True)
+        if not valid.all():
+            notes.append(f"reference '{name}': {int((~valid).sum())} NaN/Inf pixel(s) masked "
+                         "out of the loss")
+        weight = np.broadcast_to(valid, image.shape).astype(np.float32)
+        refs[index] = Reference(mi.TensorXf(np.where(weight > 0, image, 0.0)),
+                                mi.TensorXf(weight))
+    return refs
 
 
 def start_job(scene: mi.Scene, spec: pb.JobSpec, reference_paths: dict[int, tuple[Path, str]],
               read_blob: Callable[[str], bytes], checkpoint: bytes | None) -> Optimization:
     """Builds the optimization of a job (spec already validated and defaulted)."""
     began = time.perf_counter()
-    sensors = scene.sensors()
-    refs = {}
-    for index, (path, name) in reference_paths.items():
-        size = sensors[index].film().crop_size()
-        refs[index] = images.read_reference(str(path), name, (int(size[0]), int(size[1])))
-    settings = []
-    for p in spec.parameters:
-        initial = np.asarray(p.initial_value, dtype=np.float32) if p.initial_value else None
-        settings.append(Setting(p.key, p.learning_rate, p.min, p.max, initial))
-    opt = Optimization(scene, settings, refs, loss=spec.loss, iterations=spec.iterations,
-                       min_error=spec.min_error, spp=spec.spp, seed=spec.seed,
-                       cosine=spec.schedule != pb.CONSTANT)
+    notes: list[str] = []
+    refs = _references(scene, spec, reference_paths, notes)
+    settings = [Setting(p.key, p.learning_rate, p.min, p.max,
+                        _array(p, read_blob, p.initial_blob, p.initial_value))
+                for p in spec.parameters]
+    truth = {v.key: _array(v, read_blob, v.blob, v.value) for v in spec.ground_truth}
+    config = Config(loss=spec.loss, iterations=spec.iterations, min_error=spec.min_error,
+                    spp=spec.spp, seed=spec.seed, cosine=spec.schedule != pb.CONSTANT,
+                    step_per_sensor=spec.sensor_mode == pb.STEP_PER_SENSOR, clamp=spec.clamp,
+                    truth={k: v for k, v in truth.items() if v is not None},
+                    image_error_every=spec.image_error_every,
+                    image_error_spp=spec.image_error_spp or 64)
+    opt = Optimization(scene, settings, refs, config)
+    opt.notes = notes + [f"gradients for: {', '.join(opt.settings)}",
+                         f"sensors rendered: {', '.join(map(str, opt.references))}"
+                         + (f" (not rendered: {', '.join(map(str, skipped))})"
+                            if (skipped := [i for i in range(len(scene.sensors()))
+                                            if i not in opt.references]) else "")]
     if checkpoint is not None:
         opt.restore(checkpoint)
     else:
@@ -138,24 +185,36 @@ def values_to_proto(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
 
 def results(opt: Optimization, job: str,
             chosen: list[tuple[int, int, float, dict[str, np.ndarray]]],
-            shapes: dict[str, list[int]], put_blob: PutBlob) -> list[pb.JobResult]:
-    """For each chosen (which, iteration, loss, values): the parameters and the renders
-    (initial, optimized, reference per sensor). Initial and reference images are shared."""
+            shapes: dict[str, list[int]], kinds: dict[str, int],
+            put_blob: PutBlob) -> list[pb.JobResult]:
+    """For each chosen (which, iteration, loss, values): the parameters, the renders per sensor
+    (initial, optimized, reference, |optimized - reference|) and optimized textures as images.
+    Initial and reference images are made once and shared."""
     spp = max(RESULT_SPP, opt.spp)
     shared = {}
     for sensor, ref in opt.references.items():
-        shared[sensor] = (_image(put_blob, opt.render(opt.initial, sensor, spp), sensor,
-                                 "initial"),
-                          _image(put_blob, np.array(ref, dtype=np.float32), sensor,
-                                 "reference"))
+        reference = np.array(ref.image, dtype=np.float32)
+        shared[sensor] = (reference, [
+            _image(put_blob, opt.render(opt.initial, sensor, spp), sensor, "initial"),
+            _image(put_blob, reference, sensor, "reference")])
     initial = values_to_proto(opt.initial, shapes, put_blob)
     out = []
     for which, iteration, loss, values in chosen:
         res = pb.JobResult(job=job, which=which, iteration=iteration, loss=loss,
                            parameters=values_to_proto(values, shapes, put_blob),
                            initial_parameters=initial)
-        for sensor, (first, ref) in shared.items():
-            optimized = _image(put_blob, opt.render(values, sensor, spp), sensor, "optimized")
-            res.images.extend([first, optimized, ref])
+        for sensor, (reference, (first, ref_image)) in shared.items():
+            optimized = opt.render(values, sensor, spp)
+            error = np.abs(optimized - reference) * np.array(opt.references[sensor].weight)
+            res.images.extend([first, _image(put_blob, optimized, sensor, "optimized"),
+                               ref_image, _image(put_blob, error, sensor, "error")])
+        for key, v in values.items():
+            if kinds.get(key) == pb.TEXTURE and len(shapes[key]) == 3:
+                texture = v.reshape(shapes[key])
+                if texture.shape[2] == 1:
+                    texture = np.repeat(texture, 3, axis=2)
+                image = _image(put_blob, texture[..., :3], 0, "texture")
+                image.parameter = key
+                res.images.append(image)
         out.append(res)
     return out
