@@ -9,8 +9,11 @@ from __future__ import annotations
 import csv
 import json
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from matopt.client import Client, download_blob, resource_name, short_float, short_floats
 from matopt.v1 import matopt_pb2 as pb
@@ -30,9 +33,22 @@ class Export:
 
 
 def image_filename(image: pb.Image, extension: str) -> str:
-    """``sensor0_optimized.png``: sensor and role in the name, so a directory sorts by sensor."""
+    """``sensor0_optimized.png``: sensor and role in the name, so a directory sorts by sensor;
+    an optimized texture is named after its parameter key."""
+    if image.parameter:
+        return f"{_UNSAFE.sub('_', image.parameter)}.{extension}"
     role = image.role or "render"
     return f"sensor{image.sensor}_{role}.{extension}"
+
+
+def write_vol(grid: np.ndarray, path: Path) -> Path:
+    """Mitsuba's binary grid format (version 3, float32, X fastest, unit bounding box) of a
+    (Z, Y, X, C) array, so that an optimized volume drops into a ``gridvolume``."""
+    z, y, x, c = grid.shape
+    header = (b"VOL" + bytes([3]) + struct.pack("<iiiii", 1, x, y, z, c)
+              + struct.pack("<6f", 0, 0, 0, 1, 1, 1))
+    path.write_bytes(header + np.ascontiguousarray(grid, dtype="<f4").tobytes())
+    return path
 
 
 def download_images(client: Client, images, directory: Path) -> list[Path]:
@@ -55,6 +71,9 @@ def _values(client: Client, values, directory: Path, suffix: str,
             path = directory / f"{_UNSAFE.sub('_', v.key)}{suffix}.npy"
             written.append(download_blob(client, v.blob, path))
             out[v.key] = path.name
+            if len(v.shape) == 4:  # a volume grid: also as .vol
+                written.append(write_vol(np.load(path).reshape(list(v.shape)),
+                                         path.with_suffix(".vol")))
         else:
             out[v.key] = short_floats(v.value)
         shapes[v.key] = list(v.shape)

@@ -1,13 +1,14 @@
 """Turning an uploaded bundle into a directory Mitsuba can load, without importing Mitsuba.
 
-Three things happen here, all before the engine sees the scene:
+What happens here, all before the engine sees the scene:
 - the bundle's files are laid out under the scene's directory, and every file the XML refers
   to must be in the bundle and inside it (``matopt.bundle`` has the path rules);
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
   would lose its parameters after a restart;
-- Windows ``\\`` separators in file references become ``/``;
+- Windows ``\\`` separators in file references become ``/``; bitmap textures load as float
+  (8-bit ones carry no gradient); removed integrators (``prb_reparam``) become their successors;
 - ``<default>`` overrides are applied only where the XML declares the default; others are
   reported as warnings, never required.
 """
@@ -102,12 +103,54 @@ def prepare(directory: Path, main: str, overrides: dict[str, str]) -> PreparedSc
     declared = bundle.declared_defaults(root)
     warnings = [f"override '{k}={v}' ignored: '{main}' declares no <default name=\"{k}\">"
                 for k, v in sorted(overrides.items()) if k not in declared]
+    overrides = {k: LEGACY_INTEGRATORS.get(v, v) for k, v in overrides.items()}
+    warnings += modernize_integrators(root, main)
     assign_ids(root)
     forward_slashes(root)
+    float_textures(root)
     loadable = source.parent / LOADABLE_NAME
     ET.ElementTree(root).write(loadable, encoding="utf-8", xml_declaration=True)
     return PreparedScene(directory, loadable,
                          {k: v for k, v in overrides.items() if k in declared}, warnings)
+
+
+# Removed in Mitsuba 3.5; their successors optimize the same visibility-dependent parameters.
+LEGACY_INTEGRATORS = {"prb_reparam": "prb_projective", "direct_reparam": "direct_projective"}
+_LEGACY_PROPERTIES = ("reparam_", )
+
+
+def modernize_integrators(root: ET.Element, main: str) -> list[str]:
+    """Old scenes (the thesis's among them) name integrators Mitsuba 3.9 no longer has and set
+    ``reparam_*`` properties its parser rejects; load them with the modern equivalent."""
+    warnings = []
+    for elem in root.iter():
+        if elem.tag == "default" and elem.get("value") in LEGACY_INTEGRATORS:
+            old = elem.get("value")
+            elem.set("value", LEGACY_INTEGRATORS[old])
+            warnings.append(f"'{main}': default '{elem.get('name')}' names integrator '{old}' "
+                            f"(removed in Mitsuba 3.5); using '{LEGACY_INTEGRATORS[old]}'")
+        if elem.tag != "integrator":
+            continue
+        old = elem.get("type", "")
+        if old in LEGACY_INTEGRATORS:
+            elem.set("type", LEGACY_INTEGRATORS[old])
+            warnings.append(f"'{main}': integrator '{old}' was removed in Mitsuba 3.5; using "
+                            f"'{LEGACY_INTEGRATORS[old]}'")
+        for child in list(elem):
+            if child.get("name", "").startswith(_LEGACY_PROPERTIES):
+                elem.remove(child)
+                warnings.append(f"'{main}': dropped integrator property "
+                                f"'{child.get('name')}' (no longer exists)")
+    return warnings
+
+
+def float_textures(root: ET.Element) -> None:
+    """Mitsuba 3.9 loads PNG/JPEG bitmaps as 8-bit data, which cannot carry gradients; asking
+    for the variant's float format makes every bitmap texture optimizable as it stands."""
+    for elem in root.iter("texture"):
+        if elem.get("type") == "bitmap" and not any(
+                c.tag == "string" and c.get("name") == "format" for c in elem):
+            ET.SubElement(elem, "string", name="format", value="variant")
 
 
 def forward_slashes(root: ET.Element) -> None:

@@ -93,3 +93,96 @@ def create_scene(stubs, files: dict[str, bytes], main: str, **overrides) -> pb.S
     bundle = [pb.BundleFile(path=path, sha256=upload(stubs, data)) for path, data in files.items()]
     return stubs.scenes.CreateScene(pb.CreateSceneRequest(
         main_file=main, files=bundle, overrides={k: str(v) for k, v in overrides.items()}))
+
+
+def png(pixels) -> bytes:
+    """An 8-bit RGB PNG of an (H, W, 3) array in [0, 1] (sRGB-encoded values), without Mitsuba."""
+    import struct
+    import zlib
+
+    import numpy as np
+
+    rgb = (np.clip(np.asarray(pixels), 0, 1) * 255 + 0.5).astype(np.uint8)
+    raw = b"".join(b"\x00" + row.tobytes() for row in rgb)
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    h, w = rgb.shape[:2]
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+def vol(grid) -> bytes:
+    """Mitsuba's binary .vol grid (float32, X fastest) of an (Z, Y, X, C) array, bbox [0,1]^3."""
+    import struct
+
+    import numpy as np
+
+    g = np.asarray(grid, dtype=np.float32)
+    z, y, x, c = g.shape
+    return (b"VOL" + bytes([3]) + struct.pack("<iiiii", 1, x, y, z, c)
+            + struct.pack("<6f", 0, 0, 0, 1, 1, 1) + g.tobytes())
+
+
+def camera(res: int, origin: str = "0, 0, 4", fov: float = 30) -> str:
+    return f"""<sensor type="perspective">
+        <float name="fov" value="{fov}"/>
+        <transform name="to_world"><lookat origin="{origin}" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/>
+            <rfilter type="box"/></film>
+    </sensor>"""
+
+
+def textured_quad(res: int = 32) -> str:
+    """A quad filling the view with an 8-bit PNG base colour, lit by a white environment."""
+    return f"""<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+    {camera(res, fov=32)}
+    <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+    <shape type="rectangle" id="quad">
+        <bsdf type="diffuse">
+            <texture type="bitmap" name="reflectance">
+                <string name="filename" value="textures/albedo.png"/>
+                <string name="filter_type" value="nearest"/>
+            </texture>
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+
+def glass_with_medium(res: int = 32) -> str:
+    """Thesis Table 4: a rough dielectric sphere filled with a homogeneous medium, in front of a
+    checkerboard, lit by an environment and an area light."""
+    return f"""<scene version="3.0.0">
+    <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
+    {camera(res, "0, 0.5, 4")}
+    <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+    <shape type="rectangle">
+        <transform name="to_world"><scale value="0.8"/><rotate x="1" angle="70"/><translate value="0.8, 2.5, 1.5"/></transform>
+        <emitter type="area"><rgb name="radiance" value="8"/></emitter>
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><scale value="3"/><translate value="0, 0, -1.5"/></transform>
+        <bsdf type="diffuse">
+            <texture type="checkerboard" name="reflectance">
+                <rgb name="color0" value="0.1"/><rgb name="color1" value="0.8"/>
+                <transform name="to_uv"><scale value="6"/></transform>
+            </texture>
+        </bsdf>
+    </shape>
+    <shape type="sphere" id="blob">
+        <bsdf type="roughdielectric">
+            <float name="alpha" value="0.1"/>
+            <float name="int_ior" value="1.49"/>
+            <float name="ext_ior" value="1"/>
+        </bsdf>
+        <medium type="homogeneous" name="interior">
+            <rgb name="albedo" value="0.412, 0.824, 0.999"/>
+            <float name="sigma_t" value="0.4"/>
+        </medium>
+    </shape>
+</scene>
+"""
