@@ -114,8 +114,9 @@ def png(pixels) -> bytes:
             + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
 
 
-def vol(grid) -> bytes:
-    """Mitsuba's binary .vol grid (float32, X fastest) of an (Z, Y, X, C) array, bbox [0,1]^3."""
+def vol(grid, lo: float = -0.8, hi: float = 0.8) -> bytes:
+    """Mitsuba's binary .vol grid (float32, X fastest) of a (Z, Y, X, C) array; Mitsuba places
+    it in the bounding box the header gives ([lo, hi]^3, the cube of grid_volume())."""
     import struct
 
     import numpy as np
@@ -123,7 +124,7 @@ def vol(grid) -> bytes:
     g = np.asarray(grid, dtype=np.float32)
     z, y, x, c = g.shape
     return (b"VOL" + bytes([3]) + struct.pack("<iiiii", 1, x, y, z, c)
-            + struct.pack("<6f", 0, 0, 0, 1, 1, 1) + g.tobytes())
+            + struct.pack("<6f", lo, lo, lo, hi, hi, hi) + g.tobytes())
 
 
 def camera(res: int, origin: str = "0, 0, 4", fov: float = 30) -> str:
@@ -182,6 +183,64 @@ def glass_with_medium(res: int = 32) -> str:
         <medium type="homogeneous" name="interior">
             <rgb name="albedo" value="0.412, 0.824, 0.999"/>
             <float name="sigma_t" value="0.4"/>
+        </medium>
+    </shape>
+</scene>
+"""
+
+
+def colored_mesh(res: int = 32) -> tuple[str, bytes]:
+    """A 3x3-vertex grid mesh whose diffuse colour comes from per-vertex colours (a PLY)."""
+    verts, faces = [], []
+    colors = [(0.8, 0.2, 0.2), (0.2, 0.8, 0.2), (0.2, 0.2, 0.8), (0.8, 0.8, 0.2), (0.5, 0.5, 0.5),
+              (0.2, 0.8, 0.8), (0.8, 0.2, 0.8), (0.9, 0.6, 0.3), (0.3, 0.6, 0.9)]
+    for j in range(3):
+        for i in range(3):
+            r, g, b = colors[3 * j + i]
+            verts.append(f"{i - 1} {j - 1} 0 {r} {g} {b}")
+    for j in range(2):
+        for i in range(2):
+            a = 3 * j + i
+            faces += [f"3 {a} {a + 1} {a + 4}", f"3 {a} {a + 4} {a + 3}"]
+    ply = "\n".join(["ply", "format ascii 1.0", f"element vertex {len(verts)}",
+                     "property float x", "property float y", "property float z",
+                     "property float r", "property float g", "property float b",
+                     f"element face {len(faces)}", "property list uchar int vertex_indices",
+                     "end_header", *verts, *faces]) + "\n"
+    xml = f"""<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+    {camera(res, fov=35)}
+    <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+    <shape type="ply" id="grid">
+        <string name="filename" value="grid.ply"/>
+        <bsdf type="diffuse">
+            <texture type="mesh_attribute" name="reflectance">
+                <string name="name" value="vertex_color"/>
+            </texture>
+        </bsdf>
+    </shape>
+</scene>
+"""
+    return xml, ply.encode()
+
+
+def grid_volume(res: int = 32) -> str:
+    """A cube of heterogeneous medium whose albedo is a 4x4x4 RGB grid (.vol file), seen by
+    two cameras so that every voxel shows."""
+    return f"""<scene version="3.0.0">
+    <integrator type="volpath"><integer name="max_depth" value="6"/></integrator>
+    {camera(res, "2, 1.5, 3.5")}
+    {camera(res, "-3.5, -1.5, -2")}
+    <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+    <shape type="cube" id="box">
+        <transform name="to_world"><scale value="0.8"/></transform>
+        <bsdf type="null"/>
+        <medium type="heterogeneous" name="interior">
+            <volume type="gridvolume" name="albedo">
+                <string name="filename" value="albedo.vol"/>
+                <string name="filter_type" value="nearest"/>
+            </volume>
+            <float name="sigma_t" value="1.5"/>
         </medium>
     </shape>
 </scene>

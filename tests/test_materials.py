@@ -15,7 +15,8 @@ import pytest
 from matopt.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
-from scenes import create_scene, glass_with_medium, png, textured_quad, upload
+from scenes import (colored_mesh, create_scene, glass_with_medium, grid_volume, png,
+                    textured_quad, upload, vol)
 
 
 def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[float] | str],
@@ -104,3 +105,59 @@ def test_roughdielectric_with_homogeneous_medium(stubs):
                  "blob.interior_medium.sigma_t.value.value": 0.1}
     for key, tol in tolerance.items():
         assert got[key] == pytest.approx(truth[key], abs=tol), (key, got[key])
+
+
+def test_per_vertex_colours_from_black(stubs):
+    """Thesis Table 8: per-vertex colours of a mesh, from black."""
+    xml, ply = colored_mesh()
+    params, got, _ = recover(stubs, {"mesh.xml": xml.encode(), "grid.ply": ply}, "mesh.xml",
+                             {"grid.vertex_color": [0.0] * 27}, iterations=150)
+    assert params["grid.vertex_color"].kind == pb.VERTEX_ARRAY
+    truth = np.array(params["grid.vertex_color"].value)
+    assert np.abs(got["grid.vertex_color"] - truth).max() < 0.05
+
+
+def test_grid_volume_albedo_from_grey(stubs):
+    """Thesis Table 5: a heterogeneous medium's albedo grid (4x4x4 RGB), started from a grey
+    grid given as a .npy blob, since 192 values are too many to travel inline."""
+    truth = np.random.default_rng(0).uniform(0.3, 0.95, (4, 4, 4, 3)).astype(np.float32)
+    start = npy_blob(stubs, np.full((4, 4, 4, 3), 0.6))
+    key = "box.interior_medium.albedo.data"
+    params, got, done = recover(stubs, {"vol.xml": grid_volume().encode(),
+                                        "albedo.vol": vol(truth)}, "vol.xml",
+                                {key: start}, iterations=200, spp=8)
+    assert params[key].kind == pb.VOLUME_GRID and list(params[key].shape) == [4, 4, 4, 3]
+    assert done.integrator == "prbvolpath"
+    error = got[key] - truth.ravel()
+    # The 8 interior voxels are seen only through the others and converge slowly (0.108 after
+    # 300 iterations); the bound is on the RMSE over all 64 voxels and 3 channels.
+    start_rmse = np.sqrt(np.mean((0.6 - truth) ** 2))
+    assert start_rmse > 0.18
+    assert np.sqrt(np.mean(error ** 2)) < 0.125
+
+
+
+def test_emitter_radiance_alone_and_jointly_with_a_wall(stubs):
+    """Area light radiance (values near 18, far outside [0, 1]) alone, then together with the
+    red wall's reflectance (the scales differ by two orders of magnitude)."""
+    light, red = "light.emitter.radiance.value", "red.reflectance.value"
+    truth = {light: [18.387, 13.9873, 6.75357], red: [0.570068, 0.0430135, 0.0443706]}
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
+                                                                      "resy": "32"}))
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=256)).images[0]
+    for selection in ([light], [light, red]):
+        job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+            scene=scene.name, iterations=150, min_error=0,
+            references=[pb.Reference(blob=ref.exr_blob)],
+            parameters=[pb.ParameterSpec(key=light, initial_value=[10, 10, 10],
+                                         learning_rate=0.5)]
+            + ([pb.ParameterSpec(key=red, initial_value=[0.3, 0.3, 0.3])]
+               if red in selection else []))))
+        done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
+        assert done.state == pb.SUCCEEDED, done.error
+        last = {v.key: np.array(v.value) for v in stubs.jobs.GetJobResult(
+            pb.GetJobResultRequest(name=job.name, which=pb.LAST)).parameters}
+        relative = np.abs(last[light] - truth[light]) / np.array(truth[light])
+        assert relative.max() < 0.05, (selection, last[light])
+        if red in selection:
+            assert last[red] == pytest.approx(truth[red], abs=0.04)
