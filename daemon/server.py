@@ -351,6 +351,8 @@ class Jobs(rpc.JobsServicer):
         scene = self.store.get_scene(user, _name("scenes", request.spec.scene))
         params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
         spec = _check_spec(request.spec, scene, params, self.store)
+        if request.initial_from_job:
+            self._start_from(user, request, spec)
 
         def check_references():
             engine = self.scheduler.engine()
@@ -365,6 +367,25 @@ class Jobs(rpc.JobsServicer):
         self.store.add_job(job, request.request_id)
         self.scheduler.enqueue(job)
         return job
+
+    def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec) -> None:
+        """A restart: parameters without an initial value of their own start where another
+        job's result left them (values inline, large ones by blob: nothing is re-uploaded)."""
+        source = _name("jobs", request.initial_from_job)
+        self.store.get_job(source, user)
+        which = request.initial_from_which or pb.BEST
+        result = self.store.result(source, which)
+        if result is None:
+            raise FailedPrecondition(f"job '{source}' has no {pb.Which.Name(which)} result to "
+                                     "start from")
+        found = {v.key: v for v in result.parameters}
+        for p in spec.parameters:
+            if p.initial_value or p.initial_blob or p.key not in found:
+                continue
+            if found[p.key].blob:
+                p.initial_blob = found[p.key].blob
+            else:
+                p.initial_value[:] = found[p.key].value
 
     @unary
     async def GetJob(self, request, context, user):

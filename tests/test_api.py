@@ -218,3 +218,25 @@ def test_ground_truth_gives_parameter_errors_and_image_error(stubs):
     assert first.max_abs == pytest.approx(0.5 - 0.0430135, abs=1e-5)  # started from grey
     assert [r.HasField("image_error") for r in history] == [True, False, True, False, True, True]
     assert all(r.image_error > 0 for r in history if r.HasField("image_error"))
+
+
+def test_restart_from_a_finished_job_starts_where_it_ended(stubs):
+    scene, job = _cornell_job(stubs, 4)
+    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    ended = {v.key: list(v.value) for v in last.parameters}
+    old = stubs.jobs.GetJob(pb.GetJobRequest(name=job.name)).spec
+    spec = pb.JobSpec()
+    spec.CopyFrom(old)
+    spec.iterations, spec.spp = 2, 2          # edited settings
+    for p in spec.parameters:
+        del p.initial_value[:]
+    spec.parameters[0].initial_value[:] = [0.1, 0.2, 0.3]  # and one edited initial value
+    again = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec, initial_from_job=job.name,
+                                                     initial_from_which=pb.LAST))
+    starts = {p.key: list(p.initial_value) for p in again.spec.parameters}
+    assert starts[WALLS[0]] == pytest.approx([0.1, 0.2, 0.3])
+    for key in WALLS[1:]:
+        assert starts[key] == ended[key]
+    done = wait_state(stubs, again.name, (pb.SUCCEEDED, pb.FAILED))
+    assert done.state == pb.SUCCEEDED and done.spec.iterations == 2
