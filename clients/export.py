@@ -76,6 +76,11 @@ def _values(client: Client, values, directory: Path, suffix: str,
                                          path.with_suffix(".vol")))
         else:
             out[v.key] = short_floats(v.value)
+            if len(v.value) > 3:  # arrays (vertex colours, small textures) also as .npy
+                path = directory / f"{_UNSAFE.sub('_', v.key)}{suffix}.npy"
+                values = np.asarray(v.value, dtype=np.float32)
+                np.save(path, values.reshape(list(v.shape)) if v.shape else values)
+                written.append(path)
         shapes[v.key] = list(v.shape)
     return out, shapes
 

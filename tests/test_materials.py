@@ -58,25 +58,52 @@ def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[fl
     return params, values, done
 
 
+def export(daemon, job: str, directory):
+    """What a user gets from `matopt job export --which last`."""
+    from matopt.client import connect
+    from matopt.export import export_job
+    client = connect(daemon.address)
+    try:
+        return export_job(client, job, directory, "last")
+    finally:
+        client.close()
+
+
+def read_vol(path) -> np.ndarray:
+    data = path.read_bytes()
+    assert data[:4] == b"VOL\x03"
+    x, y, z, c = np.frombuffer(data[8:24], dtype="<i4")
+    return np.frombuffer(data[48:], dtype="<f4").reshape(z, y, x, c)
+
+
 def npy_blob(stubs, array) -> str:
     buf = io.BytesIO()
     np.save(buf, np.asarray(array, dtype=np.float32))
     return f"blobs/{upload(stubs, buf.getvalue())}"
 
 
-def test_bitmap_texture_from_black(stubs):
+def test_bitmap_texture_from_black(stubs, daemon, tmp_path):
     """An 8-bit PNG texture becomes optimizable without editing the XML (thesis Figure 15:
     'empty (black) bitmap' start). Truth: 4x4 texels of distinct colours."""
     rng = np.random.default_rng(1)
     texels = rng.uniform(0.1, 0.9, (4, 4, 3))
     files = {"quad.xml": textured_quad().encode(), "textures/albedo.png": png(texels)}
-    params, got, _ = recover(stubs, files, "quad.xml",
-                             {"quad.bsdf.reflectance.data": [0.0] * 48}, iterations=120)
+    params, got, done = recover(stubs, files, "quad.xml",
+                                {"quad.bsdf.reflectance.data": [0.0] * 48}, iterations=120)
     key = "quad.bsdf.reflectance.data"
     assert params[key].kind == pb.TEXTURE and list(params[key].shape) == [4, 4, 3]
     truth = np.array(params[key].value)
     rmse = np.sqrt(np.mean((got[key] - truth) ** 2))
     assert rmse < 0.03, (rmse, got[key] - truth)
+    # The export holds the texture as an image and the values as the daemon reported them.
+    out = export(daemon, done.name, tmp_path)
+    import json
+    exported = json.loads((out.directory / "parameters.json").read_text())
+    assert np.array(exported["parameters"][key]) == pytest.approx(got[key], abs=1e-6)
+    assert exported["shapes"][key] == [4, 4, 3]
+    assert (out.directory / "quad.bsdf.reflectance.data.png").read_bytes()[:4] == b"\x89PNG"
+    assert (out.directory / "quad.bsdf.reflectance.data.exr").exists()
+    assert (out.directory / "sensor0_error.png").exists()
 
 
 def test_roughdielectric_with_homogeneous_medium(stubs):
@@ -107,17 +134,24 @@ def test_roughdielectric_with_homogeneous_medium(stubs):
         assert got[key] == pytest.approx(truth[key], abs=tol), (key, got[key])
 
 
-def test_per_vertex_colours_from_black(stubs):
+def test_per_vertex_colours_from_black(stubs, daemon, tmp_path):
     """Thesis Table 8: per-vertex colours of a mesh, from black."""
     xml, ply = colored_mesh()
-    params, got, _ = recover(stubs, {"mesh.xml": xml.encode(), "grid.ply": ply}, "mesh.xml",
-                             {"grid.vertex_color": [0.0] * 27}, iterations=150)
+    params, got, done = recover(stubs, {"mesh.xml": xml.encode(), "grid.ply": ply},
+                                "mesh.xml", {"grid.vertex_color": [0.0] * 27}, iterations=150)
     assert params["grid.vertex_color"].kind == pb.VERTEX_ARRAY
     truth = np.array(params["grid.vertex_color"].value)
     assert np.abs(got["grid.vertex_color"] - truth).max() < 0.05
+    out = export(daemon, done.name, tmp_path).directory
+    import json
+    exported = json.loads((out / "parameters.json").read_text())
+    assert np.array(exported["parameters"]["grid.vertex_color"]) == pytest.approx(
+        got["grid.vertex_color"], abs=1e-6)
+    assert np.array_equal(np.load(out / "grid.vertex_color.npy").ravel(),
+                          got["grid.vertex_color"].astype(np.float32))
 
 
-def test_grid_volume_albedo_from_grey(stubs):
+def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
     """Thesis Table 5: a heterogeneous medium's albedo grid (4x4x4 RGB), started from a grey
     grid given as a .npy blob, since 192 values are too many to travel inline."""
     truth = np.random.default_rng(0).uniform(0.3, 0.95, (4, 4, 4, 3)).astype(np.float32)
@@ -134,6 +168,11 @@ def test_grid_volume_albedo_from_grey(stubs):
     start_rmse = np.sqrt(np.mean((0.6 - truth) ** 2))
     assert start_rmse > 0.18
     assert np.sqrt(np.mean(error ** 2)) < 0.125
+    # Exported as .npy and as a Mitsuba .vol, both reloading to the reported values.
+    out = export(daemon, done.name, tmp_path).directory
+    npy = np.load(out / f"{key}.npy")
+    assert npy.shape == (4, 4, 4, 3) and np.allclose(npy.ravel(), got[key])
+    assert np.allclose(read_vol(out / f"{key}.vol"), npy)
 
 
 
