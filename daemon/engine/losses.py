@@ -26,6 +26,9 @@ class Loss:
     renders: int
     fn: Callable[..., "mi.TensorXf"]  # (renders, reference, weight) -> shape ()
     objective: bool = True  # False: a diagnostic that gradient descent would abuse
+    # Iterations over which the loss is averaged before it is compared (best iteration, min
+    # error): 1 for losses that are >= 0; more for estimates that noise can push below 0.
+    window: int = 1
 
 
 def _mean(x: Tensor, w: Tensor) -> Tensor:
@@ -85,7 +88,7 @@ def _multiscale(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
 
 LOSSES = {
     pb.MSE: Loss("mse", 1, _mse),
-    pb.DUAL_BUFFER: Loss("dual_buffer", 2, _dual_buffer),
+    pb.DUAL_BUFFER: Loss("dual_buffer", 2, _dual_buffer, window=8),
     pb.BRIGHTNESS_INDEPENDENT_MSE: Loss("brightness_independent_mse", 1,
                                         _brightness_independent),
     pb.MAE: Loss("mae", 1, _mae),

@@ -123,6 +123,8 @@ class Optimization:
         self.nonfinite_steps = 0
         self.skipped_steps = 0
         self.clamped = 0
+        self.recent: list[float] = []  # the last `loss.window` finite losses
+        self._judged: float | None = None
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -147,6 +149,7 @@ class Optimization:
         i, c = self.iteration, self.config
         last = i + 1 >= c.iterations
         theta = self.values()
+        self._judged = None  # the windowed loss of this iteration, once known
         if c.step_per_sensor and len(self.references) > 1:
             loss = self._step_per_sensor(i, last)
         else:
@@ -157,8 +160,9 @@ class Optimization:
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
                 self._descend(total, loss, i)
-        if math.isfinite(loss) and loss < self.best.loss:
-            self.best = Best(i, loss, theta)
+        judged = self._judge(loss)
+        if judged is not None and judged < self.best.loss:
+            self.best = Best(i, judged, theta)
         reached = self._reached(loss)
         self.iteration = i + 1
         self.elapsed += time.perf_counter() - start
@@ -169,8 +173,20 @@ class Optimization:
             out.image_error = self.image_error(theta)  # off the clock
         return out
 
+    def _judge(self, loss: float) -> float | None:
+        """The loss that decisions use: the mean of the last ``window`` losses, once there are
+        that many. A single dual-buffer estimate is unbiased but noisy and can be < 0; taking
+        its minimum, or stopping on it, would pick a lucky draw rather than good parameters."""
+        if self._judged is None:
+            if math.isfinite(loss):
+                self.recent = (self.recent + [loss])[-self.loss.window:]
+            full = len(self.recent) == self.loss.window and math.isfinite(loss)
+            self._judged = sum(self.recent) / len(self.recent) if full else math.nan
+        return None if math.isnan(self._judged) else self._judged
+
     def _reached(self, loss: float) -> bool:
-        return math.isfinite(loss) and loss < self.config.min_error
+        judged = self._judge(loss)
+        return judged is not None and judged < self.config.min_error
 
     def _step_per_sensor(self, i: int, last: bool) -> float:
         losses = []

@@ -1,0 +1,143 @@
+"""Job options beyond the defaults: every loss, per-sensor steps, clamping, legacy scenes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from matopt.v1 import matopt_pb2 as pb
+
+from conftest import wait_state
+from scenes import create_scene
+
+WALL = "red.reflectance.value"
+TRUTH = [0.570068, 0.0430135, 0.0443706]
+
+
+@pytest.fixture(scope="module")
+def box(stubs):
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
+                                                                      "resy": "32"}))
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=256)).images[0]
+    return scene, ref
+
+
+def run(stubs, scene, refs, iterations=80, **spec) -> tuple[pb.Job, list[float]]:
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, iterations=iterations, min_error=-1, references=refs,
+        parameters=[pb.ParameterSpec(key=WALL, initial_value=[0.3, 0.3, 0.3])], **spec)))
+    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
+    assert done.state == pb.SUCCEEDED, done.error
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    return done, list(last.parameters[0].value)
+
+
+@pytest.mark.parametrize("loss", [pb.MSE, pb.DUAL_BUFFER, pb.MAE, pb.MULTISCALE_MSE])
+def test_every_objective_recovers_the_wall(stubs, box, loss):
+    scene, ref = box
+    done, got = run(stubs, scene, [pb.Reference(blob=ref.exr_blob)], loss=loss)
+    assert got == pytest.approx(TRUTH, abs=0.05), pb.Loss.Name(loss)
+
+
+def test_brightness_independent_mse_recovers_colour_against_a_lit_background(stubs):
+    """Normalizing by the image mean keeps the object's colour relative to what surrounds it.
+    (In the Cornell box the light's pixels, ~18 at 4 spp, dominate that mean and its noise.)"""
+    two = create_scene(stubs, {"two.xml": TWO_CAMERAS.encode()}, "two.xml")
+    refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=two.name, spp=128)).images
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=two.name, iterations=80, min_error=-1, loss=pb.BRIGHTNESS_INDEPENDENT_MSE,
+        references=[pb.Reference(blob=i.exr_blob) for i in refs],
+        parameters=[pb.ParameterSpec(key="ball.bsdf.reflectance.value",
+                                     initial_value=[0.5, 0.5, 0.5])])))
+    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    assert list(last.parameters[0].value) == pytest.approx([0.2, 0.6, 0.3], abs=0.06)
+
+
+def test_brightness_independent_loss_is_safe_on_black_images(stubs, box):
+    scene, ref = box
+    black = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1, parameters=[
+        pb.ParameterValue(key="light.emitter.radiance.value", value=[0, 0, 0])])).images[0]
+    done, got = run(stubs, scene, [pb.Reference(blob=black.exr_blob)], iterations=5,
+                    loss=pb.BRIGHTNESS_INDEPENDENT_MSE)
+    history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=done.name)).iterations
+    assert all(math.isfinite(r.loss) for r in history)
+    assert all(math.isfinite(v) for v in got) and done.skipped_steps == 0
+
+
+def test_step_per_sensor_and_accumulated_steps_both_work_on_two_cameras(stubs, box):
+    """The same reference twice stands for two cameras: one Adam step per sensor (thesis) or
+    one accumulated step; the loss reported is the mean over sensors either way."""
+    scene, ref = box
+    two = create_scene(stubs, {"two.xml": TWO_CAMERAS.encode()}, "two.xml")
+    refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=two.name, spp=128)).images
+    for mode in (pb.ACCUMULATE, pb.STEP_PER_SENSOR):
+        job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+            scene=two.name, iterations=60, min_error=0, sensor_mode=mode,
+            references=[pb.Reference(blob=i.exr_blob) for i in refs],
+            parameters=[pb.ParameterSpec(key="ball.bsdf.reflectance.value",
+                                         initial_value=[0.5, 0.5, 0.5])])))
+        done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
+        assert done.state == pb.SUCCEEDED and list(done.sensors_rendered) == [0, 1]
+        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+        assert list(last.parameters[0].value) == pytest.approx([0.2, 0.6, 0.3], abs=0.05)
+
+
+def test_clamp_is_off_unless_asked(stubs, box):
+    """An HDR reference: without clamping the light's radiance is recovered; clamped to [0, 1]
+    the saturated light gives no gradient and the radiance stays where it started."""
+    scene, ref = box
+    key = "light.emitter.radiance.value"
+    results = {}
+    for clamp in (False, True):
+        job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+            scene=scene.name, iterations=60, min_error=0, clamp=clamp,
+            references=[pb.Reference(blob=ref.exr_blob)],
+            parameters=[pb.ParameterSpec(key=key, initial_value=[30, 30, 30],
+                                         learning_rate=1.0)])))
+        wait_state(stubs, job.name, (pb.SUCCEEDED,))
+        results[clamp] = list(stubs.jobs.GetJobResult(pb.GetJobResultRequest(
+            name=job.name, which=pb.LAST)).parameters[0].value)
+    assert results[False][0] == pytest.approx(18.387, rel=0.1)
+    assert abs(results[True][0] - 18.387) > abs(results[False][0] - 18.387)
+
+
+LEGACY = """<scene version="3.0.0">
+    <default name="integrator" value="prb_reparam"/>
+    <integrator type="$integrator">
+        <integer name="max_depth" value="3"/>
+        <integer name="reparam_rays" value="16"/>
+    </integrator>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+    </sensor>
+    <emitter type="constant"/>
+    <shape type="sphere"><bsdf type="diffuse"/></shape>
+</scene>
+"""
+
+TWO_CAMERAS = """<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/></film>
+    </sensor>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="3, 0, 0" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="16"/></film>
+    </sensor>
+    <emitter type="constant"/>
+    <shape type="sphere" id="ball"><bsdf type="diffuse"><rgb name="reflectance" value="0.2, 0.6, 0.3"/></bsdf></shape>
+</scene>
+"""
+
+
+def test_legacy_reparam_scene_loads_with_a_warning(stubs):
+    scene = create_scene(stubs, {"old.xml": LEGACY.encode()}, "old.xml")
+    assert any("prb_reparam" in w and "prb_projective" in w for w in scene.warnings)
+    assert any("reparam_rays" in w for w in scene.warnings)
+    # and it renders
+    image = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=4)).images[0]
+    assert (image.width, image.height) == (16, 16)
