@@ -14,6 +14,11 @@ Guards (Dr.Jit 1.5's dr.clip propagates NaN, and Adam has no NaN guard of its ow
 - a loss that is NaN/Inf skips the step entirely. Counted in ``skipped_steps``.
 - after the step each parameter is clipped into its [min, max]; components the step pushed
   out are counted in ``clamped``.
+
+Parameters that are positive and unbounded above (radiance, extinction, scales) are optimized
+as u = log(v): a step of size lr changes v by a factor of about e^lr, the same relative change
+at 1e-3 as at 1e3, so a radiance near 1000 and a reflectance near 0.5 can share one learning
+rate, and v can never step below 0. The others are optimized as they are and clipped.
 """
 
 from __future__ import annotations
@@ -41,6 +46,10 @@ class Setting:
     lo: float
     hi: float
     initial: np.ndarray | None  # None: the scene's value
+
+    @property
+    def log(self) -> bool:
+        return self.lo == 0.0 and math.isinf(self.hi)
 
 
 @dataclass
@@ -86,6 +95,10 @@ def _seed(base: int, iteration: int, slot: int, slots: int) -> int:
     return (base * 1_000_003 + iteration * slots + slot) % 2**32
 
 
+LOG_FLOOR = 1e-6    # log(0) is -inf: a start at 0 starts at this instead
+LATENT_LIMIT = 40.0  # |u| bound for log parameters: e^40 ~ 2e17, far past any scene
+
+
 def parameter_error(value: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
     """(max |v - t|, rmse, rmse / rms(t)); relative falls back to rmse when the truth is 0."""
     d = value.astype(np.float64) - truth
@@ -111,10 +124,13 @@ class Optimization:
         self.params.keep(list(self.settings))
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         for key, s in self.settings.items():
-            start = s.initial if s.initial is not None else self.scene_values[key]
-            self.opt[key] = parameters.assign(self.params[key], np.clip(start, s.lo, s.hi))
+            start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
+                            s.lo, s.hi)
+            if s.log:
+                start = np.log(np.maximum(start, LOG_FLOOR))
+            self.opt[key] = parameters.assign(self.params[key], start)
             self.opt.set_learning_rate({key: s.learning_rate})
-        self.params.update(self.opt)
+        self._apply()
         self.initial = self.values()
 
         self.iteration = 0          # the next iteration to run
@@ -128,8 +144,18 @@ class Optimization:
 
     # -- the loop ---------------------------------------------------------------------------
 
+    def _value(self, key: str):
+        """The scene value of a parameter, v = e^u for log parameters (differentiable in u)."""
+        u = self.opt[key]
+        return dr.exp(u) if self.settings[key].log else u
+
+    def _apply(self) -> None:
+        for key in self.settings:
+            self.params[key] = self._value(key)
+        self.params.update()
+
     def values(self) -> dict[str, np.ndarray]:
-        return {k: parameters.flat(self.opt[k]) for k in self.settings}
+        return {k: parameters.flat(self._value(k)) for k in self.settings}
 
     def _sensor_loss(self, i: int, n: int, sensor: int, ref: Reference):
         renders = self.loss.renders
@@ -207,10 +233,13 @@ class Optimization:
         self.opt.step()
         for key, s in self.settings.items():
             value = self.opt[key]
+            if s.log:
+                self.opt[key] = dr.clip(value, -LATENT_LIMIT, LATENT_LIMIT)
+                continue
             outside = dr.count((value < s.lo) | (value > s.hi), axis=None)
             self.clamped += int(np.asarray(outside).sum())
             self.opt[key] = dr.clip(value, s.lo, s.hi)
-        self.params.update(self.opt)
+        self._apply()
 
     def _schedule(self, i: int) -> None:
         # lr_i = lr * (0.1 + 0.9 * (1 + cos(pi * i / (N - 1))) / 2)
@@ -235,7 +264,6 @@ class Optimization:
 
     def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
         """A primal render with the selected parameters set to ``values`` (then restored)."""
-        current = self.values()
         for key, v in values.items():
             self.params[key] = parameters.assign(self.params[key], v)
         self.params.update()
@@ -245,9 +273,7 @@ class Optimization:
                                 integrator=self.integrator, seed=_seed(self.config.seed, 0, 0, 1) + 7)
             return np.array(img, dtype=np.float32)[..., :3]
         finally:
-            for key, v in current.items():
-                self.params[key] = parameters.assign(self.params[key], v)
-            self.params.update(self.opt)
+            self._apply()
 
     def image_error(self, values: dict[str, np.ndarray]) -> float:
         """RMSE of renders at ``image_error_spp`` against the references (masked pixels out),
@@ -301,4 +327,4 @@ class Optimization:
             if f"best{n}" in z:
                 best[key] = z[f"best{n}"]
         self.best = Best(int(best_it), float(best_loss), best) if best else Best()
-        self.params.update(self.opt)
+        self._apply()
