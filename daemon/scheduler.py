@@ -395,8 +395,11 @@ class Scheduler:
         for res in self.engine().results(opt, job.name, chosen, run.shapes, run.kinds,
                                           self.store.put_blob):
             self.store.put_result(res)
+        notes = self.engine().diagnose(opt, chosen[-1][3] if chosen else {},
+                                       [h.loss for h in history])
         with self._lock:
             self._drop(job.name)
+            job.notes.extend(notes)
             job.state, job.stop_reason = state, reason
             self._save(job)
 

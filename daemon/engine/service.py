@@ -18,7 +18,7 @@ import numpy as np
 from matopt.v1 import matopt_pb2 as pb
 
 from ..errors import InvalidArgument
-from . import images, parameters, scene as scenes, variant
+from . import diagnosis, images, parameters, scene as scenes, variant
 from .optimize import Config, Optimization, Reference, Setting
 
 PutBlob = Callable[[bytes], str]
@@ -167,6 +167,12 @@ def start_job(scene: mi.Scene, spec: pb.JobSpec, reference_paths: dict[int, tupl
     else:
         opt.elapsed += time.perf_counter() - began
     return opt
+
+
+def diagnose(opt: Optimization, values: dict[str, np.ndarray], losses: list[float]
+             ) -> list[str]:
+    return diagnosis.diagnose(opt.settings, values, losses, opt.nonfinite_steps,
+                              opt.skipped_steps)
 
 
 def values_to_proto(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
