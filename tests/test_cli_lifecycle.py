@@ -62,10 +62,13 @@ def test_session_across_restart(own_daemon, tmp_path):
 
     # A finished job, waited for with a progress display.
     done = matopt(d, "job", "start", scene, "--ref", str(ref), "--param", KEY,
-                  "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--wait")
+                  "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--wait",
+                  "--truth", f"{KEY}=0.2,0.4,0.6")
     job = done.stdout.strip().splitlines()[0]
     status = as_json(d, "job", "status", job)
     assert status["state"] == "SUCCEEDED" and status["iteration"] == 60
+    errors = [r["errors"][0]["maxAbs"] for r in as_json(d, "job", "history", job)["iterations"]]
+    assert errors[0] == pytest.approx(0.6, abs=1e-5) and errors[-1] < 0.05  # 0.8 -> 0.2
 
     out = tmp_path / "export"
     matopt(d, "job", "export", job, "--out", str(out), "--which", "last")
@@ -74,8 +77,16 @@ def test_session_across_restart(own_daemon, tmp_path):
     rows = list(csv.DictReader(open(out / "history.csv")))
     assert [int(r["iteration"]) for r in rows] == list(range(60))
     assert all(float(r["seconds"]) > 0 for r in rows)
-    for role in ("initial", "optimized", "reference"):
+    for role in ("initial", "optimized", "reference", "error"):
         assert (out / f"sensor0_{role}.png").read_bytes().startswith(b"\x89PNG")
+
+    # A restart from where it ended, with other settings.
+    restart = as_json(d, "job", "start", scene, "--ref", "blobs/" + status["spec"]["references"][0]
+                    ["blob"].removeprefix("blobs/"), "--param", KEY, "--iterations", "2",
+                    "--from", job, "--from-which", "last")
+    assert restart["spec"]["parameters"][0]["initialValue"] == pytest.approx(
+        exported["parameters"][KEY], abs=1e-6)
+    wait_for(d, restart["name"], ("SUCCEEDED",))
 
     # A long job: watch a few events, pause, resume, then stop the daemon under it.
     long_job = matopt(d, "job", "start", scene, "--ref", str(ref), "--param", KEY,
@@ -119,7 +130,7 @@ def test_session_across_restart(own_daemon, tmp_path):
     cancelled = wait_for(d, long_job, ("CANCELLED",))
     assert cancelled["iteration"] >= checkpoint
     listed = {j["name"]: j["state"] for j in as_json(d, "job", "list")["jobs"]}
-    assert listed == {job: "SUCCEEDED", long_job: "CANCELLED"}
+    assert listed == {job: "SUCCEEDED", restart["name"]: "SUCCEEDED", long_job: "CANCELLED"}
 
 
 def test_errors_are_one_line_and_exit_nonzero(own_daemon, tmp_path):

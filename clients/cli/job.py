@@ -18,7 +18,10 @@ from matopt.cli.session import Group, connected
 from matopt.export import WHICH, export_job
 from matopt.v1 import matopt_pb2 as pb
 
-LOSSES = {"mse": pb.MSE, "dual_buffer": pb.DUAL_BUFFER}
+LOSSES = {"mse": pb.MSE, "dual_buffer": pb.DUAL_BUFFER, "mae": pb.MAE,
+          "brightness_independent_mse": pb.BRIGHTNESS_INDEPENDENT_MSE,
+          "multiscale_mse": pb.MULTISCALE_MSE}
+SENSOR_MODES = {"accumulate": pb.ACCUMULATE, "step_per_sensor": pb.STEP_PER_SENSOR}
 SCHEDULES = {"cosine": pb.COSINE, "constant": pb.CONSTANT}
 STATES = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]
 
@@ -99,10 +102,26 @@ def _is_blob(image: str) -> bool:
 @click.option("--min-error", type=float,
               help="stop once the loss is below this [daemon default: 0.001]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")
+@click.option("--sensor-mode", type=click.Choice(sorted(SENSOR_MODES), case_sensitive=False),
+              help="one step from all sensors' gradients, or one per sensor "
+                   "[daemon default: accumulate]")
+@click.option("--clamp", is_flag=True, help="clamp render and reference to [0, 1] (LDR)")
+@click.option("--resolution", type=int,
+              help="film height in pixels; widths follow each reference's aspect ratio")
+@click.option("--truth", "truths", multiple=True, type=Values(),
+              help="known true value, KEY=v1,v2,...: each iteration records the error")
+@click.option("--image-error-every", type=int,
+              help="every N iterations, the image RMSE at higher spp (off the clock)")
+@click.option("--from", "from_job", metavar="JOB", type=JOB,
+              help="start where JOB's result left the parameters (a restart)")
+@click.option("--from-which", type=click.Choice(sorted(WHICH), case_sensitive=False),
+              default="best", show_default=True, help="which result of --from")
 @click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
 @json_option
 def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
+          sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
+          image_error_every: int | None, from_job: str | None, from_which: str,
           wait: bool, as_json: bool) -> None:
     """Start a job on SCENE; prints the job's name.
 
@@ -113,15 +132,21 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
     given = {"iterations": iterations, "spp": spp, "min_error": min_error, "seed": seed,
              "loss": LOSSES[loss.lower()] if loss else None,
              "schedule": SCHEDULES[schedule.lower()] if schedule else None,
-             "learning_rate": next((rate for key, rate in rates if key is None), None)}
+             "learning_rate": next((rate for key, rate in rates if key is None), None),
+             "sensor_mode": SENSOR_MODES[sensor_mode.lower()] if sensor_mode else None,
+             "clamp": clamp or None, "resolution": resolution,
+             "image_error_every": image_error_every}
     spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
                       **{k: v for k, v in given.items() if v is not None})
+    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values) for t in truths)
     for _, image in refs:
         if not _is_blob(image) and not os.path.isfile(image):
             raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
     client = connected()
     spec.references.extend(upload_references(client, refs))
-    created = client.jobs.CreateJob(pb.CreateJobRequest(spec=spec, request_id=str(uuid.uuid4())))
+    created = client.jobs.CreateJob(pb.CreateJobRequest(
+        spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
+        initial_from_which=WHICH[from_which.lower()]))
     if as_json and not wait:
         emit_json(created)
     elif not as_json:
@@ -193,6 +218,8 @@ def status(name: str, as_json: bool) -> None:
         "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),
         "sensors": ", ".join(map(str, j.sensors_rendered)),
         "skipped steps": j.skipped_steps,
+        "clamped components": j.clamped_components,
+        "notes": "\n  ".join(j.notes) or None,
         "non-finite gradients": j.nonfinite_gradient_steps,
         "resumed from": j.resumed_from or None,
         "owner": j.owner,
@@ -290,3 +317,6 @@ def export(name: str, out_dir: str, which: str) -> None:
         click.echo(str(path))
     note(f"{name}: {which} iteration {done.result.iteration}, "
          f"loss {number(done.result.loss)}")
+
+
+
