@@ -319,4 +319,6 @@ def export(name: str, out_dir: str, which: str) -> None:
          f"loss {number(done.result.loss)}")
 
 
+from matopt.cli.report import report  # noqa: E402 - a module of its own (plots, matplotlib)
 
+job.add_command(report)

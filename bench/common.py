@@ -1,0 +1,344 @@
+"""What every benchmark case shares: a daemon in a child process, a client, scenes and
+references, running a job while timing it on both sides, alternation, statistics and CSV.
+
+Machines here are noisy (2 shared cores), so no case reports an absolute time alone: each
+measures its baseline in the same run, alternating with the measured thing (A B, B A, ...),
+and reports the ratio.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+import uuid
+import xml.etree.ElementTree as ET
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))  # tests/scenes.py: the procedural scenes
+
+from matopt import client as mc  # noqa: E402
+from matopt.cli import report  # noqa: E402
+from matopt.v1 import matopt_pb2 as pb  # noqa: E402
+
+CORNELL_XML = ROOT / "daemon" / "engine" / "cornell_box.xml"
+WALLS = ["red.reflectance.value", "green.reflectance.value"]
+GREY = [0.5, 0.5, 0.5]
+
+
+# ---------------------------------------------------------------------------------------------
+# Results of a case
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Target:
+    """A figure against its target; ``met`` None when it could not be measured."""
+
+    what: str
+    figure: str
+    met: bool | None
+
+
+@dataclass
+class Result:
+    """What a case hands to the summary: targets, a few markdown lines, files it wrote."""
+
+    name: str
+    title: str
+    targets: list[Target] = field(default_factory=list)
+    lines: list[str] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+@dataclass
+class Settings:
+    out: Path
+    quick: bool
+    work: Path  # scratch space (daemon data dirs, downloads): not part of the results
+
+
+# ---------------------------------------------------------------------------------------------
+# The daemon
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Daemon:
+    process: subprocess.Popen
+    client: mc.Client
+    address: str
+    data_dir: Path
+    log: Path
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    @property
+    def variant(self) -> str:
+        return self.client.info.variant if self.client.info else ""
+
+
+@contextmanager
+def daemon(work: Path, name: str = "daemon") -> Iterator[Daemon]:
+    """``python -m matoptd`` on a free loopback port with its own data dir, as users start it;
+    SIGTERM on the way out (SIGKILL if it does not stop in 60 s)."""
+    directory = work / f"{name}-{uuid.uuid4().hex[:6]}"
+    directory.mkdir(parents=True)
+    port_file, log = directory / "port", directory / "matoptd.log"
+    command = [sys.executable, "-m", "matoptd", "--listen", "127.0.0.1:0",
+               "--data-dir", str(directory / "data"), "--port-file", str(port_file)]
+    with open(log, "wb") as out:
+        process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
+                                   stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 180
+        while not port_file.exists():
+            if process.poll() is not None:
+                raise RuntimeError(f"matoptd exited: {log.read_text()[-2000:]}")
+            if time.monotonic() > deadline:
+                raise RuntimeError("matoptd did not start in 180 s")
+            time.sleep(0.1)
+        address = f"127.0.0.1:{int(port_file.read_text())}"
+        client = mc.connect(address, probe_timeout=30)
+        try:
+            yield Daemon(process, client, address, directory / "data", log)
+        finally:
+            client.close()
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process, all its threads (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident set size of a process: psutil when installed, else /proc (Linux)."""
+    try:
+        import psutil
+        return psutil.Process(pid).memory_info().rss
+    except ImportError:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f"cannot read the RSS of process {pid}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes, references, jobs
+# ---------------------------------------------------------------------------------------------
+
+
+def cornell(client: mc.Client, res: int) -> pb.Scene:
+    """The daemon's built-in Cornell box at res x res."""
+    return client.scenes.CreateScene(pb.CreateSceneRequest(
+        overrides={"resx": str(res), "resy": str(res)}, request_id=str(uuid.uuid4())))
+
+
+def xml_scene(client: mc.Client, work: Path, xml: str, name: str,
+              **overrides: object) -> pb.Scene:
+    """A one-file scene bundle from an XML string (uploaded like any user's scene)."""
+    path = work / "scenes" / f"{name}-{uuid.uuid4().hex[:6]}" / f"{name}.xml"
+    path.parent.mkdir(parents=True)
+    path.write_text(xml)
+    main, files = mc.upload_bundle(client, path)
+    return client.scenes.CreateScene(pb.CreateSceneRequest(
+        main_file=main, files=files, overrides={k: str(v) for k, v in overrides.items()},
+        request_id=str(uuid.uuid4())))
+
+
+def with_ids(xml: str) -> str:
+    """The XML with the ids the daemon gives unnamed top-level objects, so that a plain
+    Mitsuba script sees the same parameter keys as a job."""
+    from matoptd.scenes import assign_ids  # pure XML, no Mitsuba
+    root = ET.fromstring(xml)
+    assign_ids(root)
+    return ET.tostring(root, encoding="unicode")
+
+
+def parameters(client: mc.Client, scene: pb.Scene) -> dict[str, pb.Parameter]:
+    return {p.key: p for p in client.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=scene.name)).parameters}
+
+
+def reference(client: mc.Client, scene: pb.Scene, spp: int, work: Path) -> tuple[str, Path]:
+    """A reference render of sensor 0 by the daemon: its EXR blob and a local copy (for the
+    plain Mitsuba loops, which must fit the very same image)."""
+    image = client.scenes.RenderScene(pb.RenderSceneRequest(
+        name=scene.name, spp=spp, sensors=[0], seed=12345)).images[0]
+    path = work / "references" / f"{image.exr_blob.removeprefix('blobs/')}.exr"
+    if not path.exists():
+        mc.download_blob(client, image.exr_blob, path)
+    return image.exr_blob, path
+
+
+@dataclass
+class JobRun:
+    """A finished job with its history, and when the client saw each iteration arrive."""
+
+    job: pb.Job
+    history: list[pb.IterationRecord]
+    wall: float                     # CreateJob sent -> final state seen
+    arrivals: list[float]           # client clock of each iteration event, from CreateJob
+    first_iteration: float | None   # CreateJob sent -> iteration 0 seen
+    cpu: list[float] = field(default_factory=list)  # daemon CPU seconds at each arrival
+
+    @property
+    def seconds(self) -> list[float]:
+        return [r.seconds for r in self.history]
+
+
+def run_job(client: mc.Client, spec: pb.JobSpec,
+            on_created: Callable[[str], None] | None = None,
+            pid: int | None = None) -> JobRun:
+    """Creates the job and follows it with WatchJob to its end.
+
+    The watch starts right after CreateJob returns (and ``on_created(name)``); should
+    iteration 0 have finished before the stream opened, the job event that opens the stream
+    shows it, so first_iteration is never missed (only then it is a little late). With the
+    daemon's ``pid``, its CPU time is read as each iteration arrives: work done, which other
+    tenants of the machine disturb far less than elapsed time.
+    """
+    began = time.perf_counter()
+    name = client.jobs.CreateJob(pb.CreateJobRequest(spec=spec,
+                                                     request_id=str(uuid.uuid4()))).name
+    if on_created:
+        on_created(name)
+    arrivals: list[float] = []
+    cpu: list[float] = []
+    first: float | None = None
+    final: pb.Job | None = None
+    for event in mc.watch(client, name):
+        now = time.perf_counter() - began
+        if event.HasField("iteration"):
+            arrivals.append(now)
+            if pid is not None:
+                cpu.append(cpu_seconds(pid))
+            first = now if first is None else first
+        elif event.job.iteration > 0 and first is None:
+            first = now
+        if event.HasField("job") and event.job.state in mc.TERMINAL_STATES:
+            final = event.job
+    wall = time.perf_counter() - began
+    if final is None:
+        final = client.jobs.GetJob(pb.GetJobRequest(name=name))
+    history = list(client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations)
+    return JobRun(final, history, wall, arrivals, first, cpu)
+
+
+def require_success(run: JobRun, what: str) -> None:
+    if run.job.state != pb.SUCCEEDED:
+        raise RuntimeError(f"{what}: job {run.job.name} ended "
+                           f"{mc.state_name(run.job.state)}: {run.job.error}")
+
+
+def wall_spec(scene: pb.Scene, ref_blob: str, *, iterations: int, spp: int,
+              schedule: int = pb.CONSTANT, seed: int = 0) -> pb.JobSpec:
+    """The overhead case's job: the Cornell box's red and green walls from grey, Adam 0.03,
+    MSE, no early stop (min_error 0), so every run does exactly ``iterations`` iterations."""
+    return pb.JobSpec(scene=scene.name, references=[pb.Reference(blob=ref_blob)],
+                      parameters=[pb.ParameterSpec(key=k, initial_value=GREY) for k in WALLS],
+                      iterations=iterations, spp=spp, min_error=0.0, learning_rate=0.03,
+                      schedule=schedule, loss=pb.MSE, seed=seed)
+
+
+# ---------------------------------------------------------------------------------------------
+# Timing and statistics
+# ---------------------------------------------------------------------------------------------
+
+
+def per_iteration(seconds: Sequence[float]) -> float:
+    """Seconds per iteration in steady state: from the end of iteration 0 to the end of the
+    last, so the first iteration's kernel compilation and scene load stay out."""
+    if len(seconds) < 2:
+        return float("nan")
+    return (seconds[-1] - seconds[0]) / (len(seconds) - 1)
+
+
+def alternate(rounds: int, first: Callable[[int], None], second: Callable[[int], None]) -> None:
+    """ABBA order: round r runs first-second when r is even, second-first when odd, so slow
+    drift of the machine (thermal, other tenants) weighs on both sides alike."""
+    for r in range(rounds):
+        for fn in ((first, second) if r % 2 == 0 else (second, first)):
+            fn(r)
+
+
+def percentile(values: Sequence[float], p: float) -> float:
+    """Linear-interpolated percentile, p in [0, 100]."""
+    xs = sorted(values)
+    if not xs:
+        return float("nan")
+    k = (len(xs) - 1) * p / 100
+    lo, hi = int(k), min(int(k) + 1, len(xs) - 1)
+    return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
+
+
+def median(values: Sequence[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def spread(values: Sequence[float], fmt: str = "{:.3f}") -> str:
+    """"median (min-max, n=N)" of a list of figures."""
+    if not values:
+        return "n/a"
+    return (f"{fmt.format(median(values))} ({fmt.format(min(values))}-"
+            f"{fmt.format(max(values))}, n={len(values)})")
+
+
+def write_csv(path: Path, rows: Sequence[dict]) -> Path:
+    """Rows of dicts; the columns are the union of their keys in order of appearance."""
+    columns: dict[str, None] = {}
+    for row in rows:
+        columns.update(dict.fromkeys(row))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        out = csv.DictWriter(f, list(columns))
+        out.writeheader()
+        out.writerows({k: _plain(v) for k, v in row.items()} for row in rows)
+    return path
+
+
+def _plain(value: object) -> object:
+    return f"{value:.6g}" if isinstance(value, float) else value
+
+
+def job_series(run: JobRun, label: str) -> report.Series:
+    """A daemon job as a report series (errors from the daemon, or from its values)."""
+    truth = report.truth_of(run.job.spec)
+    return report.Series(run.job.name, label, [report.record_row(r, truth) for r in run.history])
+
+
+def mib(n: float) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def git_revision() -> str:
+    """The commit the run measured, marked dirty when the daemon's code differs from it."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True,
+                             capture_output=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "daemon", "proto"],
+                               cwd=ROOT, text=True, capture_output=True,
+                               timeout=10).stdout.strip()
+        return rev + (" (daemon/ or proto/ modified)" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"

@@ -1,0 +1,118 @@
+"""Memory: the daemon's resident memory over many jobs, to see that it stays flat (no leak).
+
+A daemon of its own (so earlier cases' kernels and scenes do not count) runs small jobs one
+after the other: first many on one Cornell box, then one on each of several different scenes
+(the procedural principled sphere of tests/scenes.py, each with another base colour: another
+bundle, load and scene-cache entry, the same kernels). RSS is read after each job (psutil when
+installed, else /proc/PID/status). A daemon keeps kernels and a few loaded scenes by design,
+so memory grows over the first jobs and the first scenes (until its cache of 4 loaded scenes
+is full); what must not happen is growth per job, or per scene, after that.
+"""
+
+from __future__ import annotations
+
+import time
+
+import common
+from common import Result, Settings, Target
+from matopt.cli import report
+from matopt.v1 import matopt_pb2 as pb
+from scenes import PRINCIPLED
+
+RES, ITERATIONS, SPP = 64, 10, 4
+SETTLED = 10                # jobs after which memory should be flat
+TARGET_MIB_PER_JOB = 0.1    # slope of RSS over the jobs after SETTLED: "flat"
+SCENE_CACHE = 4             # scenes matoptd keeps loaded for renders (scheduler.SCENE_CACHE)
+
+
+def slope(xs: list[float], ys: list[float]) -> float:
+    """Least-squares slope of ys over xs."""
+    n = len(xs)
+    mx, my = sum(xs) / n, sum(ys) / n
+    var = sum((x - mx) ** 2 for x in xs)
+    return sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / var if var else float("nan")
+
+
+def coloured(n: int) -> str:
+    """The principled sphere with its n-th base colour: a different scene each time."""
+    old = '<rgb name="base_color" value="0.41, 0.82, 0.99"/>'
+    if old not in PRINCIPLED:
+        raise RuntimeError("tests/scenes.py PRINCIPLED changed: base_color not found")
+    return PRINCIPLED.replace(old, f'<rgb name="base_color" value="{0.1 + 0.08 * n:.2f}, 0.5, '
+                                   f'{0.9 - 0.08 * n:.2f}"/>')
+
+
+def plot(rows: list[dict], path) -> None:
+    plt = report.pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5), dpi=100)
+    for series in ("same scene", "different scenes"):
+        pts = [(r["jobs_done"], r["rss_mib"]) for r in rows if r["series"] == series]
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=".", label=series)
+    ax.set_xlabel("jobs finished")
+    ax.set_ylabel("daemon RSS (MiB)")
+    ax.set_title(f"daemon memory over sequential jobs ({RES}x{RES}, {ITERATIONS} iterations)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def run(settings: Settings, shared: common.Daemon) -> Result:
+    began = time.perf_counter()
+    same, different = (10, 6) if settings.quick else (50, 16)
+    rows: list[dict] = []
+    with common.daemon(settings.work, "memory") as d:
+        client = d.client
+        started = common.rss_bytes(d.pid)
+        rows.append({"series": "start", "jobs_done": 0, "rss_mib": started / 2**20})
+        scene = common.cornell(client, RES)
+        ref_blob, _ = common.reference(client, scene, 64, settings.work)
+        spec = common.wall_spec(scene, ref_blob, iterations=ITERATIONS, spp=SPP)
+        for n in range(1, same + 1):
+            common.require_success(common.run_job(client, spec), "memory")
+            rows.append({"series": "same scene", "jobs_done": n,
+                         "rss_mib": common.rss_bytes(d.pid) / 2**20})
+        before_scenes = rows[-1]["rss_mib"]
+        key = "shape_2.bsdf.base_color.value"
+        for n in range(1, different + 1):
+            other = common.xml_scene(client, settings.work, coloured(n), f"sphere{n}",
+                                     resx=RES, resy=RES)
+            blob, _ = common.reference(client, other, 16, settings.work)
+            job = pb.JobSpec(scene=other.name, references=[pb.Reference(blob=blob)],
+                             parameters=[pb.ParameterSpec(key=key, initial_value=[0.5] * 3)],
+                             iterations=ITERATIONS, spp=SPP, min_error=0.0)
+            common.require_success(common.run_job(client, job), "memory")
+            rows.append({"series": "different scenes", "jobs_done": same + n,
+                         "rss_mib": common.rss_bytes(d.pid) / 2**20})
+
+    same_rows = [r for r in rows if r["series"] == "same scene"]
+    rss = {r["jobs_done"]: r["rss_mib"] for r in same_rows}
+    first = min(SETTLED, same // 2)
+    settled = [r for r in same_rows if r["jobs_done"] >= first]
+    per_job = slope([r["jobs_done"] for r in settled], [r["rss_mib"] for r in settled])
+    per_scene = (rows[-1]["rss_mib"] - before_scenes) / different
+    scene_rows = [r for r in rows if r["series"] == "different scenes"]
+    full = scene_rows[SCENE_CACHE:]  # once the daemon's scene cache has evicted a scene
+    per_scene_late = slope([r["jobs_done"] for r in full], [r["rss_mib"] for r in full])
+    csv = common.write_csv(settings.out / "memory.csv", rows)
+    png = settings.out / "memory.png"
+    plot(rows, png)
+    marks = [n for n in (1, 10, 50) if n in rss]
+    return Result("memory", "Daemon memory over many jobs", [
+        Target(f"RSS growth per job from job {first} to {same} (same scene)",
+               f"{per_job * 1024:.0f} KiB/job (target <= {TARGET_MIB_PER_JOB * 1024:.0f} "
+               "KiB/job)", per_job <= TARGET_MIB_PER_JOB),
+        Target(f"RSS growth per scene from scene {SCENE_CACHE + 1} to {different} (a new scene "
+               "each job; the scene cache is full)",
+               f"{per_scene_late * 1024:.0f} KiB/scene (target <= "
+               f"{TARGET_MIB_PER_JOB * 1024:.0f} KiB/scene)", per_scene_late <= TARGET_MIB_PER_JOB),
+    ], [
+        f"Jobs: {ITERATIONS} iterations, {RES}x{RES}, {SPP} spp, one after the other.",
+        f"- RSS at start {started / 2**20:.0f} MiB; after "
+        + ", ".join(f"{n} job(s) {rss[n]:.0f} MiB" for n in marks) + " on the same scene",
+        f"- then {different} different scenes: {before_scenes:.0f} -> {rows[-1]['rss_mib']:.0f}"
+        f" MiB, {per_scene:.1f} MiB per scene on average; after the daemon's scene cache "
+        f"(the last {SCENE_CACHE} scenes rendered) is full, "
+        f"{per_scene_late * 1024:.0f} KiB per scene",
+    ], [csv, png], time.perf_counter() - began)

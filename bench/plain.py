@@ -1,0 +1,161 @@
+"""The baseline: a plain Mitsuba script, the loop of Mitsuba's own inverse-rendering tutorial.
+
+    scene = mi.load_file(xml, **overrides); params = mi.traverse(scene); params.keep(keys)
+    opt = mi.ad.Adam(lr=0.03); opt[key] = start; params.update(opt)
+    for i in range(n):
+        image = mi.render(scene, params, spp=spp, seed=i, integrator=integrator)
+        loss = mean((image - reference)^2)           # MSE
+        record loss and parameter values             # the tutorial prints both
+        dr.backward(loss); opt.step(); opt[key] = dr.clip(opt[key], lo, hi); params.update(opt)
+
+The one change from the tutorial: the integrator is the daemon's choice for the same scene
+(``prb`` or ``prbvolpath`` with the scene's max_depth) instead of the scene's ``path``, so both
+sides render the same way and the comparison measures the daemon, not the integrator.
+
+Also a script (``python bench/plain.py --first-iteration ...``): a fresh process that imports
+Mitsuba, sets the variant, loads the scene and runs one iteration, printing when each part
+ended, for the warm-start case. It imports nothing but Mitsuba, as a user's script would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class PlainSpec:
+    xml: Path
+    reference: Path                          # linear EXR of sensor 0
+    start: dict[str, list[float]]            # key -> initial flat value
+    iterations: int
+    spp: int
+    integrator: str = "prb"
+    max_depth: int = 8
+    overrides: dict[str, str] = field(default_factory=dict)
+    ranges: dict[str, tuple[float, float]] = field(default_factory=dict)  # default [0, 1]
+    rates: dict[str, float] = field(default_factory=dict)                 # default 0.03
+    seed: int = 0
+
+
+@dataclass
+class PlainIteration:
+    iteration: int
+    seconds: float                 # since the loop began, scene loading included
+    cpu: float                     # CPU seconds of this process (all threads), likewise
+    loss: float
+    values: dict[str, list[float]]  # theta_i: the values that produced ``loss``
+
+
+def mitsuba(variant: str):
+    """Mitsuba with the daemon's variant (so a GPU daemon is compared with a GPU script).
+
+    Dr.Jit reads DRJIT_LIBLLVM_PATH when first imported; the daemon points it at a libLLVM
+    >= 16, and so must the script, or it may abort on LLVM 14/15.
+    """
+    import os
+    if "DRJIT_LIBLLVM_PATH" not in os.environ and variant.startswith("llvm"):
+        from matoptd.engine.variant import find_libllvm
+        found = find_libllvm()
+        if found:
+            os.environ["DRJIT_LIBLLVM_PATH"] = found
+    import mitsuba as mi
+    mi.set_variant(variant)
+    return mi
+
+
+def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
+    """The tutorial loop; the clock starts before the scene is loaded, as the daemon's does."""
+    mi = mitsuba(variant)
+    import drjit as dr
+    import numpy as np
+
+    began, cpu = time.perf_counter(), time.process_time()
+    scene = mi.load_file(str(spec.xml), **spec.overrides)
+    integrator = mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+    reference = mi.TensorXf(np.array(mi.Bitmap(str(spec.reference)), dtype=np.float32)[..., :3])
+    params = mi.traverse(scene)
+    params.keep(list(spec.start))
+    opt = mi.ad.Adam(lr=0.03)
+    for key, start in spec.start.items():
+        opt[key] = dr.unravel(type(params[key]), mi.Float(start))
+        if key in spec.rates:
+            opt.set_learning_rate({key: spec.rates[key]})
+    params.update(opt)
+
+    out = []
+    for i in range(spec.iterations):
+        image = mi.render(scene, params, spp=spec.spp, seed=spec.seed + i, integrator=integrator)
+        loss = dr.mean(dr.square(image[..., :3] - reference), axis=None)
+        values = {k: np.asarray(dr.ravel(dr.detach(opt[k])), dtype=np.float32).tolist()
+                  for k in spec.start}
+        loss_value = float(loss.array[0])
+        if i + 1 < spec.iterations:  # the daemon, too, takes no step after the last render
+            dr.backward(loss)
+            opt.step()
+            for key in spec.start:
+                lo, hi = spec.ranges.get(key, (0.0, 1.0))
+                opt[key] = dr.clip(opt[key], lo, hi)
+            params.update(opt)
+        out.append(PlainIteration(i, time.perf_counter() - began, time.process_time() - cpu,
+                                  loss_value, values))
+    return out
+
+
+def first_iteration(variant: str, xml: Path, reference: Path, overrides: dict[str, str],
+                    keys: list[str], start: list[float], spp: int, integrator: str,
+                    max_depth: int) -> dict[str, float]:
+    """What a fresh process pays until its first iteration (render, loss, backward, step) has
+    ended: wall-clock epochs, so the parent can add the interpreter's own start."""
+    t = {"started": time.time()}
+    import drjit as dr
+    import mitsuba as mi
+    t["imported"] = time.time()
+    mi.set_variant(variant)
+    t["variant_set"] = time.time()
+    scene = mi.load_file(str(xml), **overrides)
+    integ = mi.load_dict({"type": integrator, "max_depth": max_depth})
+    ref = mi.TensorXf(mi.Bitmap(str(reference)))
+    params = mi.traverse(scene)
+    params.keep(keys)
+    t["loaded"] = time.time()
+    opt = mi.ad.Adam(lr=0.03)
+    for key in keys:
+        opt[key] = dr.unravel(type(params[key]), mi.Float(start))
+    params.update(opt)
+    image = mi.render(scene, params, spp=spp, seed=0, integrator=integ)
+    loss = dr.mean(dr.square(image[..., :3] - ref[..., :3]), axis=None)
+    float(loss.array[0])
+    dr.backward(loss)  # a whole first iteration, as the daemon's iteration 0 of a longer job
+    opt.step()
+    for key in keys:
+        opt[key] = dr.clip(opt[key], 0.0, 1.0)
+    params.update(opt)
+    dr.eval(*(opt[key] for key in keys))
+    t["first_iteration"] = time.time()
+    return t
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description="fresh-process first iteration (warm_start case)")
+    p.add_argument("--first-iteration", action="store_true", required=True)
+    p.add_argument("--variant", required=True)
+    p.add_argument("--xml", type=Path, required=True)
+    p.add_argument("--reference", type=Path, required=True)
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--key", action="append", required=True)
+    p.add_argument("--start", type=float, nargs="+", required=True)
+    p.add_argument("--spp", type=int, default=4)
+    p.add_argument("--integrator", default="prb")
+    p.add_argument("--max-depth", type=int, default=8)
+    a = p.parse_args()
+    overrides = dict(s.split("=", 1) for s in a.set)
+    print(json.dumps(first_iteration(a.variant, a.xml, a.reference, overrides, a.key, a.start,
+                                     a.spp, a.integrator, a.max_depth)))
+
+
+if __name__ == "__main__":
+    main()

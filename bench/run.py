@@ -1,0 +1,152 @@
+"""matopt's benchmarks: ``python bench/run.py [--quick] [--out bench/results]``.
+
+Runs every case against a daemon started here (``python -m matoptd`` on a loopback port, its
+variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; the plain-Mitsuba
+baselines use the same variant). Each case measures its own baseline in the same run,
+alternating with it, and reports ratios. Writes CSVs, PNG plots and summary.md to --out; a
+full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
+
+A case that fails is reported as failed in the summary (with the error); the others still run.
+--quick is a smoke run of reduced cases (about 2 minutes on 2 CPU cores); the full run takes
+under 15 minutes there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
+
+import common  # noqa: E402
+from common import Result, Settings, Target  # noqa: E402
+
+CASES = ["overhead", "warm_start", "quality", "memory", "control_plane"]
+DOCS = common.ROOT / "docs" / "benchmarks.md"
+
+
+def run_case(name: str, settings: Settings, shared: common.Daemon) -> Result:
+    """One case; an exception becomes a failed result rather than ending the run."""
+    began = time.perf_counter()
+    print(f"bench: {name} ...", file=sys.stderr, flush=True)
+    try:
+        result = importlib.import_module(name).run(settings, shared)
+    except Exception as exc:  # noqa: BLE001 - reported in the summary
+        traceback.print_exc()
+        result = Result(name, name, [Target("case ran", f"FAILED: {type(exc).__name__}: {exc}",
+                                            False)])
+    result.seconds = time.perf_counter() - began
+    print(f"bench: {name} done in {result.seconds:.0f} s", file=sys.stderr, flush=True)
+    for t in result.targets:
+        print(f"  {_mark(t.met)} {t.what}: {t.figure}", file=sys.stderr, flush=True)
+    return result
+
+
+def clear(out: Path) -> None:
+    """Removes what an earlier run wrote to ``out`` (and only that), so that no stale plot
+    of a case that was renamed or dropped stays next to the new summary."""
+    for f in [*out.glob("*.csv"), *out.glob("*.png"), out / "summary.md"]:
+        f.unlink(missing_ok=True)
+    shutil.rmtree(out / "quality", ignore_errors=True)
+
+
+def _mark(met: bool | None) -> str:
+    return {True: "met", False: "MISSED", None: "n/a"}[met]
+
+
+def _rel(path: Path, settings: Settings) -> str:
+    return Path(path).resolve().relative_to(settings.out).as_posix()
+
+
+def summary(results: list[Result], settings: Settings, info, seconds: float,
+            load: tuple[float, float], links: str = "") -> str:
+    """The markdown summary; ``links`` prefixes file links (for a copy elsewhere)."""
+    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    out = [
+        "# matopt benchmarks",
+        "",
+        f"Latest {'quick (smoke) ' if settings.quick else ''}run of `python bench/run.py"
+        f"{' --quick' if settings.quick else ''}`: {when}, {seconds / 60:.1f} min.",
+        f"Daemon: {info.variant} on {info.device}; matopt {info.version}, commit "
+        f"{common.git_revision()}; Python {platform.python_version()}, "
+        f"{os.cpu_count()} CPU threads.",
+        "",
+        "Every figure is a ratio against a baseline measured in the same run, alternating "
+        "with it (A B, B A, ...): the machines here are shared and noisy, so absolute times "
+        "are given for context only. Load average (1 min) at the start and end of the run: "
+        f"{load[0]:.1f}, {load[1]:.1f} on {os.cpu_count()} CPU threads; other work on the "
+        "machine shows up as noise in every time below.",
+        "",
+        "Run it: `python bench/run.py` (the full run; it also rewrites docs/benchmarks.md) or "
+        "`python bench/run.py --quick` (a smoke run of reduced cases, about 2 minutes); "
+        "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases. It starts its own "
+        "daemon on a loopback port, uses the GPU when that daemon reports a CUDA variant, and "
+        "needs matplotlib (`pip install 'matopt[plot]'`). The cases are the modules in "
+        "`bench/`; each module's docstring says exactly what it measures and why.",
+        "",
+        "## Targets",
+        "",
+        "| case | figure | result | met |",
+        "|---|---|---|---|",
+    ]
+    for r in results:
+        for t in r.targets:
+            out.append(f"| {r.name} | {t.what} | {t.figure} | {_mark(t.met)} |")
+    for r in results:
+        out += ["", f"## {r.title} (`bench/{r.name}.py`, {r.seconds:.0f} s)", ""]
+        out += r.lines
+        pictures = [f for f in r.files if f.suffix == ".png"]
+        tables = [f for f in r.files if f.suffix == ".csv"]
+        if tables:
+            out += ["", "Data: " + ", ".join(f"[{_rel(f, settings)}]({links}{_rel(f, settings)})"
+                                             for f in tables)]
+        for f in pictures:
+            out += ["", f"![{_rel(f, settings)}]({links}{_rel(f, settings)})"]
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="reduced cases: a smoke run")
+    p.add_argument("--out", type=Path, default=HERE / "results", help="results directory")
+    p.add_argument("--only", nargs="+", choices=CASES, help="run only these cases")
+    args = p.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if not args.only:
+        clear(args.out)
+    work = Path(tempfile.mkdtemp(prefix="matopt-bench-"))
+    settings = Settings(args.out.resolve(), args.quick, work)
+    began = time.perf_counter()
+    load_before = os.getloadavg()[0]
+    try:
+        with common.daemon(work, "shared") as shared:
+            info = shared.client.info
+            print(f"bench: daemon {info.variant} on {info.device}", file=sys.stderr)
+            results = [run_case(name, settings, shared) for name in args.only or CASES]
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    seconds = time.perf_counter() - began
+    load = (load_before, os.getloadavg()[0])
+    text = summary(results, settings, info, seconds, load)
+    (settings.out / "summary.md").write_text(text)
+    print(f"bench: wrote {settings.out / 'summary.md'} ({seconds / 60:.1f} min)", file=sys.stderr)
+    if not args.quick and not args.only and settings.out == (HERE / "results").resolve():
+        links = os.path.relpath(settings.out, DOCS.parent) + "/"
+        DOCS.write_text(summary(results, settings, info, seconds, load, links))
+        print(f"bench: copied the summary to {DOCS}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
