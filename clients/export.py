@@ -86,7 +86,8 @@ def _values(client: Client, values, directory: Path, suffix: str,
 
 
 def export_job(client: Client, job_name: str, directory: str | Path, which: str = "best") -> Export:
-    """Writes parameters.json, the initial/optimized/reference images and history.csv.
+    """Writes parameters.json, the initial/optimized/reference/error images, optimized
+    textures, the optimized scene (``scene/``) and history.csv.
 
     ``parameters.json`` holds flat value lists (shapes apart, under "shapes"); a parameter
     too large to travel inline is written as ``<key>.npy`` (``<key>_initial.npy`` for its
@@ -115,6 +116,9 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     export.files.append(path)
 
     export.files += download_images(client, result.images, out)
+    # The optimized scene, laid out as its bundle under scene/: load scene/<scene_file>.
+    for f in result.scene_files:
+        export.files.append(download_blob(client, f"blobs/{f.sha256}", out / "scene" / f.path))
 
     history = client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
     path = out / "history.csv"

@@ -136,11 +136,13 @@ class Scheduler:
             self._scene_cache.popitem(last=False)
         return loaded
 
+    def loadable(self, scene: pb.Scene) -> Path:
+        """The prepared copy of the scene's main XML (stable ids, float textures, ...)."""
+        return (self.scene_dir(scene.name) / scene.main_file).parent / scenes.LOADABLE_NAME
+
     def load_scene(self, scene: pb.Scene) -> Any:
         """A fresh Mitsuba scene (worker thread only). Jobs get their own: they change it."""
-        directory = self.scene_dir(scene.name)
-        loadable = (directory / scene.main_file).parent / scenes.LOADABLE_NAME
-        return self.engine().load(loadable, dict(scene.overrides),
+        return self.engine().load(self.loadable(scene), dict(scene.overrides),
                                   scene.main_file or scene.display_name)
 
     def forget_scene(self, name: str) -> None:
@@ -392,8 +394,9 @@ class Scheduler:
         elif history:
             h = history[-1]
             chosen.append((pb.LAST, h.iteration, h.loss, opt.values()))
+        scene = self.store.get_scene(job.owner, job.spec.scene)
         for res in self.engine().results(opt, job.name, chosen, run.shapes, run.kinds,
-                                          self.store.put_blob):
+                                          self.store.put_blob, scene, self.loadable(scene)):
             self.store.put_result(res)
         notes = self.engine().diagnose(opt, chosen[-1][3] if chosen else {},
                                        [h.loss for h in history])

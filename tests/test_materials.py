@@ -104,9 +104,12 @@ def test_bitmap_texture_from_black(stubs, daemon, tmp_path):
     assert (out.directory / "quad.bsdf.reflectance.data.png").read_bytes()[:4] == b"\x89PNG"
     assert (out.directory / "quad.bsdf.reflectance.data.exr").exists()
     assert (out.directory / "sensor0_error.png").exists()
+    # The optimized scene loads with the recovered texture in place of the PNG.
+    _, loaded = load_exported_scene(out.directory, "scene_optimized.xml")
+    assert np.allclose(np.array(loaded[key]).ravel(), got[key], atol=1e-4)
 
 
-def test_roughdielectric_with_homogeneous_medium(stubs):
+def test_roughdielectric_with_homogeneous_medium(stubs, daemon, tmp_path):
     """Thesis Table 4 with prbvolpath: alpha, eta, the medium's albedo and sigma_t, jointly.
 
     As in the thesis (eta's learning rate 0.003-0.01), the interface parameters get a smaller
@@ -132,6 +135,10 @@ def test_roughdielectric_with_homogeneous_medium(stubs):
                  "blob.interior_medium.sigma_t.value.value": 0.1}
     for key, tol in tolerance.items():
         assert got[key] == pytest.approx(truth[key], abs=tol), (key, got[key])
+    out = export(daemon, done.name, tmp_path).directory
+    _, loaded = load_exported_scene(out, "scene_optimized.xml")
+    for key in truth:
+        assert np.array(loaded[key]).ravel() == pytest.approx(got[key], abs=1e-5), key
 
 
 def test_per_vertex_colours_from_black(stubs, daemon, tmp_path):
@@ -149,6 +156,9 @@ def test_per_vertex_colours_from_black(stubs, daemon, tmp_path):
         got["grid.vertex_color"], abs=1e-6)
     assert np.array_equal(np.load(out / "grid.vertex_color.npy").ravel(),
                           got["grid.vertex_color"].astype(np.float32))
+    _, loaded = load_exported_scene(out, "scene_optimized.xml")
+    assert np.allclose(np.array(loaded["grid.vertex_color"]), got["grid.vertex_color"],
+                       atol=1e-6)
 
 
 def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
@@ -173,6 +183,8 @@ def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
     npy = np.load(out / f"{key}.npy")
     assert npy.shape == (4, 4, 4, 3) and np.allclose(npy.ravel(), got[key])
     assert np.allclose(read_vol(out / f"{key}.vol"), npy)
+    _, loaded = load_exported_scene(out, "scene_optimized.xml")
+    assert np.allclose(np.array(loaded[key]).ravel(), got[key], atol=1e-6)
 
 
 
@@ -200,3 +212,14 @@ def test_emitter_radiance_alone_and_jointly_with_a_wall(stubs):
         assert relative.max() < 0.05, (selection, last[light])
         if red in selection:
             assert last[red] == pytest.approx(truth[red], abs=0.04)
+
+
+def load_exported_scene(directory, main: str):
+    """The exported optimized scene as Mitsuba sees it (the test may use Mitsuba; a client
+    never needs to)."""
+    import mitsuba as mi
+    mi.set_variant("scalar_rgb")
+    path = directory / "scene" / main
+    assert path.exists(), sorted(p.name for p in (directory / "scene").rglob("*"))
+    scene = mi.load_file(str(path), optimize=False)
+    return scene, mi.traverse(scene)

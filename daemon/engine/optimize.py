@@ -23,6 +23,7 @@ rate, and v can never step below 0. The others are optimized as they are and cli
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import time
@@ -262,18 +263,23 @@ class Optimization:
 
     # -- renders off the clock --------------------------------------------------------------
 
-    def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
-        """A primal render with the selected parameters set to ``values`` (then restored)."""
+    @contextlib.contextmanager
+    def holding(self, values: dict[str, np.ndarray]):
+        """The scene with the selected parameters set to ``values``, restored afterwards."""
         for key, v in values.items():
             self.params[key] = parameters.assign(self.params[key], v)
         self.params.update()
         try:
-            with dr.suspend_grad():
-                img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
-                                integrator=self.integrator, seed=_seed(self.config.seed, 0, 0, 1) + 7)
-            return np.array(img, dtype=np.float32)[..., :3]
+            yield self.scene
         finally:
             self._apply()
+
+    def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
+        """A primal render with the selected parameters set to ``values``."""
+        with self.holding(values), dr.suspend_grad():
+            img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
+                            integrator=self.integrator, seed=_seed(self.config.seed, 0, 0, 1) + 7)
+        return np.array(img, dtype=np.float32)[..., :3]
 
     def image_error(self, values: dict[str, np.ndarray]) -> float:
         """RMSE of renders at ``image_error_spp`` against the references (masked pixels out),

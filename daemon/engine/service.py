@@ -8,6 +8,7 @@ store.
 from __future__ import annotations
 
 import io
+import posixpath
 import time
 from pathlib import Path
 from typing import Callable
@@ -18,7 +19,7 @@ import numpy as np
 from matopt.v1 import matopt_pb2 as pb
 
 from ..errors import InvalidArgument
-from . import diagnosis, images, parameters, scene as scenes, variant
+from . import diagnosis, images, parameters, scene as scenes, scene_export, variant
 from .optimize import Config, Optimization, Reference, Setting
 
 PutBlob = Callable[[bytes], str]
@@ -189,10 +190,27 @@ def values_to_proto(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
     return out
 
 
+def _scene_bundle(opt: Optimization, scene: pb.Scene, loadable: Path,
+                  values: dict[str, np.ndarray], shapes: dict[str, list[int]], put_blob: PutBlob,
+                  res: pb.JobResult) -> None:
+    """The optimized scene, next to the original main XML, with the bundle it needs."""
+    with opt.holding(values) as held:
+        files, unplaced = scene_export.optimized_scene(loadable, dict(scene.overrides), held,
+                                                       values, shapes)
+    base = posixpath.dirname(scene.main_file)
+    new = {posixpath.join(base, path): put_blob(data) for path, data in files.items()}
+    res.scene_files.extend(pb.BundleFile(path=f.path, sha256=f.sha256) for f in scene.files
+                           if f.path not in new)
+    res.scene_files.extend(pb.BundleFile(path=p, sha256=b.removeprefix("blobs/"))
+                           for p, b in new.items())
+    res.scene_file = posixpath.join(base, "scene_optimized.xml")
+    res.unplaced_parameters.extend(unplaced)
+
+
 def results(opt: Optimization, job: str,
             chosen: list[tuple[int, int, float, dict[str, np.ndarray]]],
             shapes: dict[str, list[int]], kinds: dict[str, int],
-            put_blob: PutBlob) -> list[pb.JobResult]:
+            put_blob: PutBlob, scene: pb.Scene, loadable: Path) -> list[pb.JobResult]:
     """For each chosen (which, iteration, loss, values): the parameters, the renders per sensor
     (initial, optimized, reference, |optimized - reference|) and optimized textures as images.
     Initial and reference images are made once and shared."""
@@ -222,5 +240,6 @@ def results(opt: Optimization, job: str,
                 image = _image(put_blob, texture[..., :3], 0, "texture")
                 image.parameter = key
                 res.images.append(image)
+        _scene_bundle(opt, scene, loadable, values, shapes, put_blob, res)
         out.append(res)
     return out
