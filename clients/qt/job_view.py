@@ -1,0 +1,190 @@
+"""The right half of the window: one job's progress, controls, images and loss plot.
+
+Only widgets live here; what happens on a click is the main window's business (it owns the
+connection and the job), so this panel can show any job: one just started, one opened from
+the list, or one that finished long ago.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QGridLayout, QHBoxLayout,
+                               QLabel, QProgressBar, QPushButton, QRadioButton, QSplitter,
+                               QVBoxLayout, QWidget)
+from PySide6.QtCore import Qt
+
+from matopt import client as mc
+from matopt.qt.images import ImagePane
+from matopt.qt.plot import LossPlot
+from matopt.v1 import matopt_pb2 as pb
+
+RUNNING_STATES = (pb.QUEUED, pb.RUNNING)
+
+
+class JobView(QWidget):
+    """Header (job, state, numbers), progress bar, pause/resume/cancel, sensor and best/last
+    choice, reference and render side by side, the loss plot, and export."""
+
+    def __init__(self, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(4, 0, 0, 0)
+
+        self.header = QLabel("<b>No job</b> — open a scene, pick parameters and references, "
+                             "then Start; or open a job from the list")
+        self.header.setWordWrap(True)
+        self.header.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+        layout.addWidget(self.header)
+        self.numbers = QLabel("")
+        layout.addWidget(self.numbers)
+        self.notes = QLabel("")
+        self.notes.setWordWrap(True)
+        self.notes.setStyleSheet("QLabel { color: #555; }")
+        self.notes.setToolTip("what the daemon chose for this job, and why")
+        self.notes.hide()
+        layout.addWidget(self.notes)
+
+        row = QHBoxLayout()
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 1)
+        self.progress.setValue(0)
+        self.progress.setFormat("%v / %m iterations")
+        self.pause_button = QPushButton("Pause")
+        self.resume_button = QPushButton("Resume")
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setToolTip("stop at the next iteration; results so far are kept")
+        row.addWidget(self.progress, 1)
+        for button in (self.pause_button, self.resume_button, self.cancel_button):
+            button.setEnabled(False)
+            row.addWidget(button)
+        layout.addLayout(row)
+
+        choices = QHBoxLayout()
+        choices.addWidget(QLabel("Sensor"))
+        self.sensor = QComboBox()
+        self.sensor.setMinimumContentsLength(12)
+        choices.addWidget(self.sensor)
+        choices.addSpacing(12)
+        self.best_radio = QRadioButton("Best")
+        self.best_radio.setToolTip("the iteration with the lowest loss")
+        self.last_radio = QRadioButton("Last")
+        self.last_radio.setToolTip("the final iterate (what the decaying learning rate settles)")
+        self.best_radio.setChecked(True)
+        self.which_group = QButtonGroup(self)
+        self.which_group.addButton(self.best_radio)
+        self.which_group.addButton(self.last_radio)
+        choices.addWidget(self.best_radio)
+        choices.addWidget(self.last_radio)
+        choices.addSpacing(12)
+        choices.addWidget(QLabel("Render"))
+        self.role = QComboBox()
+        self.role.addItems(["optimized", "initial", "error"])
+        self.role.setItemData(2, "|optimized − reference|, per pixel",
+                              Qt.ItemDataRole.ToolTipRole)
+        choices.addWidget(self.role)
+        self.live = QCheckBox("Live preview")
+        self.live.setChecked(True)
+        self.live.setToolTip("while the job runs, render the latest iterate at low spp every "
+                             "few seconds (less often when a render is slow)")
+        choices.addWidget(self.live)
+        choices.addStretch(1)
+        layout.addLayout(choices)
+
+        splitter = QSplitter(Qt.Orientation.Vertical)
+        images = QWidget()
+        grid = QGridLayout(images)
+        grid.setContentsMargins(0, 0, 0, 0)
+        self.reference = ImagePane("Reference")
+        self.render = ImagePane("Render")
+        grid.addWidget(self.reference, 0, 0)
+        grid.addWidget(self.render, 0, 1)
+        splitter.addWidget(images)
+        self.plot = LossPlot()
+        splitter.addWidget(self.plot)
+        splitter.setStretchFactor(0, 3)
+        splitter.setStretchFactor(1, 2)
+        layout.addWidget(splitter, 1)
+
+        bottom = QHBoxLayout()
+        self.result_label = QLabel("")
+        self.use_result_button = QPushButton("Use as start values")
+        self.use_result_button.setToolTip("copy the shown result's values into the parameter "
+                                          "table, to continue from them in a new job")
+        self.export_button = QPushButton("Export…")
+        self.export_button.setToolTip("write parameters.json, the images and history.csv to a "
+                                      "folder (as 'matopt job export')")
+        self.use_result_button.setEnabled(False)
+        self.export_button.setEnabled(False)
+        bottom.addWidget(self.result_label, 1)
+        bottom.addWidget(self.use_result_button)
+        bottom.addWidget(self.export_button)
+        layout.addLayout(bottom)
+
+    # -- helpers for the window ----------------------------------------------------------------
+
+    def which(self) -> str:
+        return "last" if self.last_radio.isChecked() else "best"
+
+    def set_sensors(self, sensors: Sequence[pb.Sensor]) -> None:
+        """Fills the sensor choice, keeping the current sensor where it still exists."""
+        current = self.sensor_index()
+        self.sensor.blockSignals(True)
+        self.sensor.clear()
+        for s in sensors:
+            label = f"{s.index}" + (f" '{s.id}'" if s.id else "") + f" ({s.width}×{s.height})"
+            self.sensor.addItem(label, s.index)
+        position = max(0, self.sensor.findData(current)) if current is not None else 0
+        self.sensor.setCurrentIndex(position if sensors else -1)
+        self.sensor.blockSignals(False)
+
+    def sensor_index(self) -> int | None:
+        data = self.sensor.currentData()
+        return int(data) if data is not None else None
+
+    def show_job(self, job: pb.Job | None) -> None:
+        """Header, numbers, progress and which buttons apply, from the job's state."""
+        if job is None:
+            self.header.setText("<b>No job</b>")
+            self.numbers.setText("")
+            self.progress.setRange(0, 1)
+            self.progress.setValue(0)
+            for button in (self.pause_button, self.resume_button, self.cancel_button):
+                button.setEnabled(False)
+            self.notes.hide()
+            return
+        state = mc.state_name(job.state)
+        reason = f" ({job.stop_reason})" if job.stop_reason else ""
+        text = f"<b>{job.name}</b> — {state}{reason}"
+        if job.integrator:
+            text += f" — {job.integrator}"
+        if job.state == pb.FAILED and job.error:
+            text += f"<br><span style='color:#a00'>{_escape(job.error)}</span>"
+        if job.resumed_from:
+            text += f"<br>resumed from {job.resumed_from}"
+        self.header.setText(text)
+        self.notes.setText("; ".join(job.notes))
+        self.notes.setVisible(bool(job.notes))
+        total = max(job.spec.iterations, 1)
+        self.progress.setRange(0, total)
+        self.progress.setValue(min(job.iteration, total))
+        self.pause_button.setEnabled(job.state in RUNNING_STATES)
+        self.resume_button.setEnabled(job.state in (pb.PAUSED, pb.INTERRUPTED))
+        self.cancel_button.setEnabled(job.state not in mc.TERMINAL_STATES)
+        self.set_numbers(job.iteration, job.loss if job.iteration else None,
+                         job.best_loss if job.iteration and job.best_iteration >= 0 else None,
+                         job.elapsed_seconds)
+
+    def set_numbers(self, iteration: int, loss: float | None, best: float | None,
+                    seconds: float) -> None:
+        parts = [f"iteration {iteration}"]
+        if loss is not None:
+            parts.append(f"loss {loss:.4g}")
+        if best is not None:
+            parts.append(f"best {best:.4g}")
+        parts.append(f"{seconds:.1f} s")
+        self.numbers.setText("   ".join(parts))
+
+
+def _escape(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

@@ -1,0 +1,179 @@
+"""One reference image per sensor: which photo (or target render) each camera should match.
+
+Images chosen together map to the sensors in file-name order (``ref0.png, ref1.png, ...``,
+numbers compared as numbers), which is how people name per-camera shots; a count that differs
+from the scene's sensor count is refused at once, naming both numbers, rather than later by
+the daemon. A single sensor's image can also be set on its own (double-click its row); then
+only the sensors with an image are optimized against.
+
+A job opened from the server (to edit and restart it) keeps its references as blobs that are
+already there, so a restart uploads nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from typing import Sequence
+
+from PySide6.QtCore import Signal
+from PySide6.QtWidgets import (QFileDialog, QHBoxLayout, QListWidget, QListWidgetItem,
+                               QPushButton, QVBoxLayout, QWidget)
+
+from matopt.v1 import matopt_pb2 as pb
+
+IMAGE_FILTER = "Images (*.png *.jpg *.jpeg *.exr);;All files (*)"
+
+
+@dataclass
+class ReferenceImage:
+    """A sensor's reference: a local file to upload, or a blob the server already has."""
+
+    sensor: int
+    filename: str
+    path: str | None = None
+    blob: str | None = None
+
+    @property
+    def on_server(self) -> bool:
+        return self.path is None and bool(self.blob)
+
+
+def natural_key(path: str) -> list:
+    """``ref2.png`` before ``ref10.png``."""
+    name = os.path.basename(path).lower()
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def plural(n: int, word: str) -> str:
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def count_mismatch(images: int, sensors: int) -> str:
+    """The message for a wrong number of images, naming both numbers."""
+    return (f"{plural(images, 'reference image')} chosen, but the scene has "
+            f"{plural(sensors, 'sensor')}: choose one image per sensor, in sensor order "
+            f"(or double-click a sensor to set its image alone)")
+
+
+class ReferenceList(QWidget):
+    """The scene's sensors, each with its reference image (or none yet).
+
+    ``problem(str)`` reports a refused choice; ``changed`` any accepted one.
+    """
+
+    changed = Signal()
+    problem = Signal(str)
+
+    def __init__(self, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.sensors: list[pb.Sensor] = []
+        self.images: dict[int, ReferenceImage] = {}
+        self.start_folder = ""
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        self.list = QListWidget()
+        self.list.setMaximumHeight(110)
+        self.list.itemDoubleClicked.connect(lambda item: self.choose_one(self.list.row(item)))
+        layout.addWidget(self.list)
+        buttons = QHBoxLayout()
+        self.load_button = QPushButton("Load references…")
+        self.load_button.setToolTip("one image per sensor (PNG/JPEG as sRGB, OpenEXR as linear)")
+        self.load_button.clicked.connect(self.choose_all)
+        self.clear_button = QPushButton("Clear")
+        self.clear_button.clicked.connect(self.clear)
+        buttons.addWidget(self.load_button)
+        buttons.addWidget(self.clear_button)
+        buttons.addStretch(1)
+        layout.addLayout(buttons)
+        self._refresh()
+
+    # -- content -------------------------------------------------------------------------------
+
+    def set_sensors(self, sensors: Sequence[pb.Sensor]) -> None:
+        """A new scene: its sensors, no images yet."""
+        self.sensors = list(sensors)
+        self.images = {}
+        self._refresh()
+
+    def clear(self) -> None:
+        self.images = {}
+        self._refresh()
+
+    def set_files(self, paths: Sequence[str]) -> str | None:
+        """Maps files to the sensors in name order; returns the problem if refused."""
+        if not self.sensors:
+            return self._refuse("open a scene before choosing its reference images")
+        if len(paths) != len(self.sensors):
+            return self._refuse(count_mismatch(len(paths), len(self.sensors)))
+        ordered = sorted(paths, key=natural_key)
+        self.images = {s.index: ReferenceImage(s.index, os.path.basename(p), path=str(p))
+                       for s, p in zip(self.sensors, ordered)}
+        self._refresh()
+        return None
+
+    def set_file(self, sensor: int, path: str) -> None:
+        self.images[sensor] = ReferenceImage(sensor, os.path.basename(path), path=str(path))
+        self._refresh()
+
+    def set_from_spec(self, references: Sequence[pb.Reference]) -> None:
+        """An earlier job's references, kept as the blobs they already are on the server."""
+        self.images = {}
+        indices = [s.index for s in self.sensors]
+        for n, ref in enumerate(references):
+            sensor = ref.sensor if ref.HasField("sensor") else (
+                indices[n] if n < len(indices) else n)
+            name = ref.filename or ref.blob.rsplit("/", 1)[-1][:12]
+            self.images[sensor] = ReferenceImage(sensor, name, blob=ref.blob)
+        self._refresh()
+
+    def reference(self, sensor: int) -> ReferenceImage | None:
+        return self.images.get(sensor)
+
+    def references(self) -> list[ReferenceImage]:
+        return [self.images[i] for i in sorted(self.images)]
+
+    # -- dialogs -------------------------------------------------------------------------------
+
+    def choose_all(self) -> None:
+        paths, _ = QFileDialog.getOpenFileNames(self, "Reference images, one per sensor",
+                                                self.start_folder, IMAGE_FILTER)
+        if paths:
+            self.start_folder = os.path.dirname(paths[0])
+            self.set_files(paths)
+
+    def choose_one(self, row: int) -> None:
+        if not 0 <= row < len(self.sensors):
+            return
+        sensor = self.sensors[row].index
+        path, _ = QFileDialog.getOpenFileName(self, f"Reference image for sensor {sensor}",
+                                              self.start_folder, IMAGE_FILTER)
+        if path:
+            self.start_folder = os.path.dirname(path)
+            self.set_file(sensor, path)
+
+    # -- internals -----------------------------------------------------------------------------
+
+    def _refuse(self, message: str) -> str:
+        self.problem.emit(message)
+        return message
+
+    def _refresh(self) -> None:
+        self.list.clear()
+        if not self.sensors:
+            self.list.addItem(QListWidgetItem("(open a scene first)"))
+        for s in self.sensors:
+            label = f"{s.index}" + (f" '{s.id}'" if s.id else "") + f" {s.width}×{s.height}: "
+            image = self.images.get(s.index)
+            if image is None:
+                label += "— no image —"
+            else:
+                label += image.filename + (" (on server)" if image.on_server else "")
+            item = QListWidgetItem(label)
+            item.setToolTip(image.path or image.blob if image else
+                            "double-click to choose this sensor's image")
+            self.list.addItem(item)
+        self.clear_button.setEnabled(bool(self.images))
+        self.load_button.setEnabled(bool(self.sensors))
+        self.changed.emit()

@@ -1,0 +1,474 @@
+"""matopt-qt against real daemons: the thesis workflow, job control, other clients' jobs, and a
+daemon that goes away mid-job. The window runs offscreen; the tests call what the toolbar
+buttons call (past their file dialogs) and assert what the user would see.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+import pytest
+
+pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed (pip install matopt[qt])")
+pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
+
+from matopt.qt import pyside_check  # noqa: E402
+
+if pyside_check.none_refcount_bug():
+    pytest.skip(pyside_check.problem() or "broken PySide6", allow_module_level=True)
+
+from PySide6.QtCore import QSettings, QTimer  # noqa: E402
+
+from matopt import client as mc  # noqa: E402
+from matopt.qt import app as qt_app  # noqa: E402
+from matopt.qt.app import MainWindow  # noqa: E402
+from matopt.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
+from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
+from matopt.v1 import matopt_pb2 as pb  # noqa: E402
+
+from conftest import TOKENS, Daemon  # noqa: E402
+from scenes import PRINCIPLED  # noqa: E402
+
+WALLS = ["red.reflectance.value", "green.reflectance.value", "white.reflectance.value"]
+BASE_COLOR, ROUGHNESS = "shape_2.bsdf.base_color.value", "shape_2.bsdf.roughness.value"
+SECOND_SENSOR = """    <sensor type="perspective" id="side">
+        <float name="fov" value="30"/>
+        <transform name="to_world"><lookat origin="3, 0.6, 2" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="$resx"/><integer name="height" value="$resy"/>
+            <rfilter type="box"/></film>
+    </sensor>
+"""
+TWO_CAMERAS = PRINCIPLED.replace('    <emitter type="constant">', SECOND_SENSOR
+                                 + '    <emitter type="constant">', 1)
+
+
+def make_window(qtbot, tmp_path: Path, **intervals) -> MainWindow:
+    store = SettingsStore(QSettings(str(tmp_path / "settings.ini"), QSettings.Format.IniFormat))
+    timing = dict(probe_interval_s=0.5, retry_interval_s=0.3, jobs_refresh_s=0.5,
+                  preview_interval_s=0.3)
+    timing.update(intervals)
+    window = MainWindow(store, tmp_path / "cache", **timing)
+    qtbot.addWidget(window)
+    window.resize(1440, 860)
+    window.show()
+    return window
+
+
+def connect(qtbot, window: MainWindow, address: str, token: str | None = None) -> None:
+    window.connect_to(ConnectionSettings(address, token))
+    qtbot.waitUntil(lambda: window.connection.usable, timeout=15000)
+
+
+def idle(qtbot, window: MainWindow) -> None:
+    qtbot.waitUntil(lambda: window.tasks.busy() == 0, timeout=30000)
+
+
+@pytest.fixture
+def window(qtbot, daemon, tmp_path) -> MainWindow:
+    w = make_window(qtbot, tmp_path)
+    connect(qtbot, w, daemon.address)
+    yield w
+    w.shutdown()
+
+
+def download(stubs, blob: str, path: Path) -> Path:
+    path.write_bytes(b"".join(r.chunk for r in stubs.blobs.DownloadBlob(
+        pb.DownloadBlobRequest(name=blob))))
+    return path
+
+
+def cornell_reference(window: MainWindow, stubs, path: Path) -> Path:
+    image = stubs.scenes.RenderScene(pb.RenderSceneRequest(
+        name=window.scene.name, spp=32)).images[0]
+    return download(stubs, image.png_blob, path)
+
+
+def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs, tmp_path,
+                                                            monkeypatch):
+    scene_dir = tmp_path / "scene"
+    scene_dir.mkdir()
+    (scene_dir / "two_cameras.xml").write_text(TWO_CAMERAS)
+    window.overrides.setText("resx=32 resy=32")
+    window.open_scene(scene_dir / "two_cameras.xml")  # what Open scene… does past its dialog
+    qtbot.waitUntil(lambda: window.scene is not None, timeout=30000)
+    scene = window.scene
+    assert [(s.width, s.height) for s in scene.sensors] == [(32, 32), (32, 32)]
+    assert "two_cameras.xml" in window.scene_label.text()
+    row = window.params.row_of(BASE_COLOR)
+    assert window.params.table.item(row, VALUE).text() == "0.41, 0.82, 0.99"
+    assert window.params.table.item(row, 2).text() == "rgb"
+    assert window.references.list.count() == 2
+    # The scene as loaded is previewed at once.
+    qtbot.waitUntil(lambda: window.view.render.has_image(), timeout=30000)
+
+    # Reference images of the truth (orange, rougher), one per camera.
+    truth = [pb.ParameterValue(key=BASE_COLOR, value=[0.9, 0.35, 0.1]),
+             pb.ParameterValue(key=ROUGHNESS, value=[0.6])]
+    images = stubs.scenes.RenderScene(pb.RenderSceneRequest(
+        name=scene.name, spp=64, parameters=truth)).images
+    refs = [download(stubs, i.png_blob, tmp_path / f"ref_cam{i.sensor}.png") for i in images]
+
+    # A wrong number of images is refused at once, naming both numbers.
+    assert window.set_reference_files(refs[:1]) is not None
+    assert "1 reference image chosen, but the scene has 2 sensors" in window.banner.text()
+    # Name order, not selection order, maps images to sensors.
+    assert window.set_reference_files([refs[1], refs[0]]) is None
+    assert window.banner.text() == ""
+    assert [r.filename for r in window.references.references()] == ["ref_cam0.png",
+                                                                    "ref_cam1.png"]
+
+    # Starting without a parameter, or with a malformed value, says what is wrong.
+    window.start_job()
+    assert "select at least one parameter" in window.banner.text()
+    window.params.set_checked(BASE_COLOR)
+    window.params.set_checked(ROUGHNESS)
+    window.params.set_cell(BASE_COLOR, VALUE, "0.5, 0.5")
+    window.start_job()
+    assert BASE_COLOR in window.banner.text() and "expected 3" in window.banner.text()
+    window.params.set_cell(BASE_COLOR, VALUE, "0.5, 0.5, 0.5")
+    window.params.set_cell(ROUGHNESS, LR, "0.05")
+    window.settings.set_values(loss="mse", iterations=12, spp=4, min_error=0)
+    window.start_job()
+    qtbot.waitUntil(lambda: window.job is not None, timeout=30000)
+    first = window.job.name
+    spec = stubs.jobs.GetJob(pb.GetJobRequest(name=first)).spec
+    by_key = {p.key: p for p in spec.parameters}
+    assert list(by_key[BASE_COLOR].initial_value) == [0.5, 0.5, 0.5]
+    assert by_key[ROUGHNESS].learning_rate == pytest.approx(0.05)
+    assert list(by_key[ROUGHNESS].initial_value) == []  # unedited: the scene's value
+    assert [(r.sensor, r.filename) for r in spec.references] == [(0, "ref_cam0.png"),
+                                                                  (1, "ref_cam1.png")]
+    assert (spec.loss, spec.iterations, spec.spp, spec.min_error) == (pb.MSE, 12, 4, 0)
+
+    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
+    idle(qtbot, window)
+    assert sorted(window.view.plot.points) == list(range(12))
+    seconds = [window.view.plot.points[i][0] for i in range(12)]
+    assert seconds == sorted(seconds) and seconds[0] > 0
+    assert window.view.progress.value() == window.view.progress.maximum() == 12
+    assert "SUCCEEDED" in window.view.header.text()
+    assert window.view.result_label.text().startswith("best: iteration ")
+    assert window.view.reference.has_image() and window.view.render.has_image()
+    assert window.view.render.caption.text().startswith("optimized, best iteration")
+    assert first.rsplit("/", 1)[-1] in [n.rsplit("/", 1)[-1] for n in window.jobs.names()]
+    assert window.export_action.isEnabled()
+
+    # Last iteration instead of best; the other camera.
+    window.set_which("last")
+    qtbot.waitUntil(lambda: window.result.which == pb.LAST, timeout=30000)
+    assert window.result.iteration == 11
+    window.set_sensor(1)
+    optimized = {i.sensor: i.png_blob for i in window.result.images if i.role == "optimized"}
+    qtbot.waitUntil(lambda: window.view.render.key == optimized[1], timeout=30000)
+    assert window.view.render.caption.text() == "optimized, last iteration 11"
+    current = window.params.table.item(window.params.row_of(BASE_COLOR), CURRENT).text()
+    assert len(current.split(",")) == 3 and current != "0.5, 0.5, 0.5"
+
+    # Export: the files of 'matopt job export --which last'.
+    window.export_to(tmp_path / "export")
+    qtbot.waitUntil(lambda: "exported" in window.banner.text(), timeout=30000)
+    written = {p.name for p in (tmp_path / "export").iterdir()}
+    assert {"parameters.json", "history.csv", "sensor0_optimized.png", "sensor1_reference.png",
+            "sensor1_initial.exr"} <= written
+    document = json.loads((tmp_path / "export" / "parameters.json").read_text())
+    assert document["which"] == "last" and document["iteration"] == 11
+
+    # Restart with edits: the scene and the references are on the server already.
+    uploads = []
+    monkeypatch.setattr(mc, "upload_files", lambda *a, **k: uploads.append(a) or [])
+    monkeypatch.setattr(mc, "upload_bundle", lambda *a, **k: uploads.append(a))
+    window.settings.set_values(loss="dual_buffer", iterations=5)
+    window.restart_job()
+    qtbot.waitUntil(lambda: window.job is not None and window.job.name != first, timeout=30000)
+    again = stubs.jobs.GetJob(pb.GetJobRequest(name=window.job.name)).spec
+    assert uploads == []
+    assert again.scene == spec.scene
+    assert [r.blob for r in again.references] == [r.blob for r in spec.references]
+    assert (again.loss, again.iterations) == (pb.DUAL_BUFFER, 5)
+    assert {p.key: list(p.initial_value) for p in again.parameters}[BASE_COLOR] == [0.5] * 3
+    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
+
+    # Continue from the result: its values become the start values of the next job.
+    window.view.use_result_button.click()
+    result = {v.key: v.value for v in window.result.parameters}
+    cell = window.params.table.item(window.params.row_of(BASE_COLOR), VALUE).text()
+    assert [float(x) for x in cell.split(",")] == pytest.approx(list(result[BASE_COLOR]),
+                                                                abs=1e-6)
+    specs = {spec.key: list(spec.initial_value) for spec in window.params.specs()}
+    assert specs[BASE_COLOR] == pytest.approx(list(result[BASE_COLOR]), abs=1e-6)
+    assert window.continue_label.text().startswith(f"Continues from {window.job.name} (last)")
+    previous = window.job.name
+    window.settings.set_values(iterations=2)
+    window.start_job()
+    qtbot.waitUntil(lambda: window.job.name != previous, timeout=30000)
+    started = {p.key: list(p.initial_value) for p in stubs.jobs.GetJob(
+        pb.GetJobRequest(name=window.job.name)).spec.parameters}
+    assert started[BASE_COLOR] == pytest.approx(list(result[BASE_COLOR]), abs=1e-6)
+    assert started[ROUGHNESS] == pytest.approx(list(result[ROUGHNESS]), abs=1e-6)
+    assert window.continue_label.isHidden()
+    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    idle(qtbot, window)
+
+
+def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stubs):
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
+                                                                      "resy": "32"}))
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=16)).images[0]
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, iterations=25, min_error=0, seed=7, loss=pb.MAE,
+        sensor_mode=pb.STEP_PER_SENSOR, clamp=True,
+        references=[pb.Reference(blob=ref.exr_blob, filename="cli-ref.exr")],
+        parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS])))
+    qtbot.waitUntil(lambda: job.name in window.jobs.names(), timeout=15000)  # periodic refresh
+    window.jobs.select(job.name)
+    window.jobs.open_button.click()
+    qtbot.waitUntil(lambda: window.job is not None and window.job.name == job.name,
+                    timeout=15000)
+    # Its scene and spec are in the setup, ready to be edited and restarted.
+    assert window.scene.name == scene.name
+    assert sorted(window.params.checked_keys()) == sorted(WALLS)
+    assert [r.filename for r in window.references.references()] == ["cli-ref.exr"]
+    assert window.references.references()[0].on_server
+    settings = window.settings
+    assert (settings.loss.currentText(), settings.sensor_mode.currentText(),
+            settings.clamp.isChecked()) == ("mae", "step per sensor", True)
+    assert "seed 7" in window.kept_label.text()
+    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: sorted(window.view.plot.points) == list(range(25)), timeout=15000)
+    # The daemon's PNG of the EXR reference appears with the results.
+    qtbot.waitUntil(lambda: window.view.reference.has_image(), timeout=15000)
+    assert window.view.reference.caption.text().startswith("sensor 0")
+    window.view.role.setCurrentText("error")
+    qtbot.waitUntil(lambda: window.view.render.caption.text().startswith(
+        "|optimized − reference|, best iteration"), timeout=15000)
+
+    # Restarted with one edit, the new job keeps everything else of the old spec, including
+    # what the window has no field for (the seed).
+    settings.set_values(iterations=3)
+    window.restart_job()
+    qtbot.waitUntil(lambda: window.job.name != job.name, timeout=15000)
+    spec = stubs.jobs.GetJob(pb.GetJobRequest(name=window.job.name)).spec
+    assert (spec.iterations, spec.seed, spec.loss, spec.sensor_mode, spec.clamp) == (
+        3, 7, pb.MAE, pb.STEP_PER_SENSOR, True)
+    assert [r.blob for r in spec.references] == [ref.exr_blob]
+    assert {p.key: list(p.initial_value) for p in spec.parameters} == {k: [0.5] * 3
+                                                                        for k in WALLS}
+    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    idle(qtbot, window)
+
+
+def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
+    window.open_cornell_box({"resx": "32", "resy": "32"})
+    qtbot.waitUntil(lambda: window.scene is not None, timeout=30000)
+    assert window.scene.display_name == "cornell-box"
+    assert window.set_reference_files([cornell_reference(window, stubs,
+                                                         tmp_path / "ref.png")]) is None
+    for key in WALLS:
+        window.params.set_checked(key)
+        window.params.set_cell(key, VALUE, "0.5, 0.5, 0.5")
+    window.settings.set_values(iterations=100000, min_error=0, spp=1)
+    window.start_job()
+    qtbot.waitUntil(lambda: window.job is not None and window.latest is not None
+                    and window.latest.iteration >= 3, timeout=30000)
+    name = window.job.name
+    # While it runs, the latest iterate is rendered every so often.
+    qtbot.waitUntil(lambda: window.view.render.caption.text().startswith("preview of iteration"),
+                    timeout=30000)
+    assert window.view.reference.has_image()
+    assert window.view.pause_button.isEnabled() and not window.view.resume_button.isEnabled()
+
+    window.pause_job()
+    qtbot.waitUntil(lambda: window.job.state == pb.PAUSED, timeout=30000)
+    assert window.view.resume_button.isEnabled() and not window.view.pause_button.isEnabled()
+    window.resume_job()
+    qtbot.waitUntil(lambda: window.job.state == pb.RUNNING, timeout=30000)
+    window.view.cancel_button.click()
+    qtbot.waitUntil(lambda: window.job.state == pb.CANCELLED, timeout=30000)
+    assert stubs.jobs.GetJob(pb.GetJobRequest(name=name)).state == pb.CANCELLED
+    # A cancelled job keeps its results so far.
+    qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
+    assert "CANCELLED" in window.view.header.text()
+    assert not any(b.isEnabled() for b in (window.view.pause_button, window.view.resume_button,
+                                           window.view.cancel_button))
+    assert window.banner.level != "error"
+    idle(qtbot, window)
+
+
+def test_daemon_going_away_mid_job(qtbot, tmp_path, caplog, capfd):
+    caplog.set_level("DEBUG")
+    tokens = tmp_path / "tokens"
+    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    data = tmp_path / "data"
+    daemon = Daemon(data, tokens).start()
+    window = make_window(qtbot, tmp_path)
+    token = TOKENS["alice"]
+    try:
+        connect(qtbot, window, daemon.address, token)
+        assert window.connection.info.user == "alice"
+        window.open_cornell_box({"resx": "32", "resy": "32"})
+        qtbot.waitUntil(lambda: window.scene is not None, timeout=30000)
+        stubs = mc.connect(daemon.address, token)
+        ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=window.scene.name,
+                                                             spp=16)).images[0]
+        window.set_reference_files([mc.download_blob(stubs, ref.png_blob, tmp_path / "r.png")])
+        stubs.close()
+        for key in WALLS:
+            window.params.set_checked(key)
+        window.settings.set_values(iterations=100000, min_error=0, spp=1)
+        window.start_job()
+        qtbot.waitUntil(lambda: window.latest is not None and window.latest.iteration >= 3,
+                        timeout=30000)
+        name = window.job.name
+
+        daemon.proc.send_signal(signal.SIGTERM)  # not daemon.stop(): the GUI loop keeps going
+        address = daemon.address
+        qtbot.waitUntil(lambda: f"lost connection to matoptd at {address}: UNAVAILABLE"
+                        in window.banner.text(), timeout=30000)
+        assert window.banner.level == "error"
+        daemon.proc.wait(timeout=60)
+
+        # Responsive while the daemon is gone: timers fire on time, the table filters.
+        ticks = []
+        timer = QTimer()
+        timer.timeout.connect(lambda: ticks.append(time.monotonic()))
+        timer.start(20)
+        qtbot.wait(1000)
+        timer.stop()
+        assert len(ticks) >= 25 and max(b - a for a, b in zip(ticks, ticks[1:])) < 0.5
+        window.params.filter.setText("red")
+        assert [window.params.table.isRowHidden(i) for i in range(len(window.params.rows))
+                ].count(False) == 1
+        window.params.filter.setText("")
+        assert "retrying" in window.banner.text()
+
+        # The daemon comes back on the same address: the window reconnects by itself and
+        # shows the job as the daemon left it; Resume continues it.
+        back = Daemon(data, tokens, "--listen", address).start()
+        try:
+            qtbot.waitUntil(lambda: window.connection.usable and window.banner.level != "error",
+                            timeout=30000)
+            qtbot.waitUntil(lambda: window.job.state == pb.INTERRUPTED, timeout=30000)
+            assert window.view.resume_button.isEnabled()
+            window.resume_job()
+            qtbot.waitUntil(lambda: window.job.state == pb.RUNNING, timeout=30000)
+            window.cancel_job()
+            qtbot.waitUntil(lambda: window.job.state == pb.CANCELLED, timeout=30000)
+            assert window.job.name == name
+            idle(qtbot, window)
+        finally:
+            window.shutdown()
+            back.stop()
+    finally:
+        window.shutdown()
+        daemon.stop()
+
+    # The settings come back in the next session; the token was never printed or logged.
+    saved = SettingsStore(QSettings(str(tmp_path / "settings.ini"),
+                                    QSettings.Format.IniFormat)).load_connection()
+    assert (saved.server, saved.token) == (address, token)
+    assert token not in repr(saved)
+    out, err = capfd.readouterr()
+    assert token not in out + err + caplog.text
+    assert "lost connection" in caplog.text
+
+
+def test_refused_token_is_reported_not_retried(qtbot, tmp_path):
+    tokens = tmp_path / "tokens"
+    tokens.write_text(f"{TOKENS['alice']} alice\n")
+    daemon = Daemon(tmp_path / "data", tokens).start()
+    window = make_window(qtbot, tmp_path)
+    try:
+        window.connect_to(ConnectionSettings(daemon.address, "not-a-token-0123456789"))
+        qtbot.waitUntil(lambda: "UNAUTHENTICATED" in window.banner.text(), timeout=15000)
+        assert f"cannot connect to matoptd at {daemon.address}" in window.banner.text()
+        assert "not-a-token" not in window.banner.text()
+        assert not window.open_action.isEnabled()
+    finally:
+        window.shutdown()
+        daemon.stop()
+
+
+def test_unreachable_server_at_start_is_a_banner_and_the_window_works(qtbot, tmp_path):
+    window = make_window(qtbot, tmp_path)
+    window.connect_to(ConnectionSettings("127.0.0.1:1"))
+    qtbot.waitUntil(lambda: "cannot reach matoptd at 127.0.0.1:1" in window.banner.text(),
+                    timeout=15000)
+    window.start_job()  # nothing loaded: says so instead of failing
+    assert window.banner.text()
+    window.shutdown()
+
+
+def test_server_that_never_answers_keeps_the_window_responsive(qtbot, tmp_path):
+    # A listener that accepts connections and then says nothing: a hung daemon.
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    address = f"127.0.0.1:{listener.getsockname()[1]}"
+    window = make_window(qtbot, tmp_path)
+    try:
+        ticks = []
+        timer = QTimer()
+        timer.timeout.connect(lambda: ticks.append(time.monotonic()))
+        timer.start(20)
+        started = time.monotonic()
+        window.connect_to(ConnectionSettings(address))
+        assert time.monotonic() - started < 0.5  # connect_to does not wait for the daemon
+        qtbot.waitUntil(lambda: f"cannot reach matoptd at {address}" in window.banner.text(),
+                        timeout=20000)
+        timer.stop()
+        assert "no answer within" in window.banner.text()
+        assert max(b - a for a, b in zip(ticks, ticks[1:])) < 0.5
+    finally:
+        window.shutdown()
+        listener.close()
+
+
+def test_settings_are_remembered_and_the_token_is_private(tmp_path):
+    path = tmp_path / "settings.ini"
+    store = SettingsStore(QSettings(str(path), QSettings.Format.IniFormat))
+    store.save_connection(ConnectionSettings("gpu-box:50051", "secret-token-0123456789",
+                                             str(tmp_path / "ca.pem")))
+    again = SettingsStore(QSettings(str(path), QSettings.Format.IniFormat)).load_connection()
+    assert (again.server, again.token, again.tls_ca) == ("gpu-box:50051",
+                                                         "secret-token-0123456789",
+                                                         str(tmp_path / "ca.pem"))
+    assert "secret-token" not in repr(again)
+    if os.name == "posix":
+        assert path.stat().st_mode & 0o077 == 0
+    store.save_connection(ConnectionSettings("gpu-box:50051", "secret-token-0123456789",
+                                             remember_token=False))
+    assert "secret-token" not in path.read_text()
+
+
+def test_qt_client_needs_neither_mitsuba_nor_drjit_nor_the_daemon():
+    code = ("import sys\n"
+            "for m in ('mitsuba', 'drjit', 'matoptd'):\n"
+            "    sys.modules[m] = None\n"
+            "import matopt.qt.app\n"
+            "from matopt.qt.app import main\n"
+            "sys.argv = ['matopt-qt', '--help']\n"
+            "main()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env=dict(os.environ, QT_QPA_PLATFORM="offscreen"))
+    assert out.returncode == 0, out.stderr
+    assert "usage: matopt-qt" in out.stdout
+    assert "--token" not in out.stdout  # a token on the command line is visible to others
+
+
+def test_parse_overrides():
+    assert qt_app.parse_overrides("resx=64, resy=64 spp=4") == {"resx": "64", "resy": "64",
+                                                               "spp": "4"}
+    with pytest.raises(ValueError, match="'resx' is not of the form NAME=VALUE"):
+        qt_app.parse_overrides("resx")
+
