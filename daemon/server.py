@@ -463,10 +463,12 @@ class Server(rpc.ServerServicer):
     async def GetServerInfo(self, request, context, user):
         return pb.ServerInfo(
             version=__version__, variant=self.scheduler.variant, device=self.scheduler.device,
-            user=user, losses=["mse", "dual_buffer"], integrators=["prb", "prbvolpath",
-                                                                   "prb_projective"],
+            user=user, losses=[pb.Loss.Name(v).lower() for v in pb.Loss.values()
+                               if v not in (pb.LOSS_UNSPECIFIED, pb.MEAN_BIAS_ERROR)],
+            integrators=["prb", "prbvolpath", "prb_projective", "direct_projective"],
             capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
-                          "checkpoint-resume", "watch", "render", "multi-user"])
+                          "checkpoint-resume", "watch", "render", "multi-user", "restart",
+                          "ground-truth-errors", "image-error", "optimized-scene-export"])
 
 
 def add_services(server: grpc.aio.Server, svc: Service) -> list[str]:

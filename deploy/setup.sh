@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Sets up matopt in ./.venv on a fresh Debian/Ubuntu machine: the system packages it needs
-# (python3-venv, and libLLVM >= 16 for Dr.Jit's CPU backend: 1.5 aborts on LLVM 14/15), then
-# the package with the daemon and test extras. Safe to run again.
+# (python3-venv; libLLVM >= 16 for Dr.Jit's CPU backend, which aborts on LLVM 14/15; the
+# libraries Qt needs), then the package with all its extras. Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,6 +20,12 @@ have_llvm() {  # libLLVM.so.19.1, libLLVM-19.so, ...: any major version >= 16
 missing=()
 python3 -c "import ensurepip, venv" >/dev/null 2>&1 || missing+=(python3-venv python3-pip)
 have_llvm || missing+=(libllvm19)
+# Qt (the desktop client and its tests, offscreen) needs these shared libraries.
+for pair in libEGL.so.1:libegl1 libGL.so.1:libgl1 libxkbcommon.so.0:libxkbcommon0 \
+            libfontconfig.so.1:libfontconfig1 libglib-2.0.so.0:libglib2.0-0 \
+            libdbus-1.so.3:libdbus-1-3; do
+    ldconfig -p 2>/dev/null | grep -q "${pair%%:*}" || missing+=("${pair##*:}")
+done
 if [ ${#missing[@]} -gt 0 ]; then
     echo "setup: installing ${missing[*]} with apt-get"
     $sudo apt-get update -qq
@@ -28,6 +34,6 @@ fi
 
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[daemon,test]"
+.venv/bin/python -m pip install -q -e ".[daemon,qt,plot,test]"
 llvm=$(.venv/bin/python -c "from matoptd.engine.variant import find_libllvm; print(find_libllvm() or '')")
 echo "setup: ready in .venv (Dr.Jit's CPU backend will use ${llvm:-no libLLVM >= 16 found})"
