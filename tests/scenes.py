@@ -7,18 +7,10 @@ from pathlib import Path
 
 from matopt.v1 import matopt_pb2 as pb
 
-PRINCIPLED = """<scene version="3.0.0">
-    <default name="resx" value="48"/>
-    <default name="resy" value="48"/>
-    <integrator type="path"><integer name="max_depth" value="6"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="30"/>
-        <transform name="to_world"><lookat origin="0, 0.6, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="$resx"/><integer name="height" value="$resy"/>
-            <rfilter type="box"/></film>
-        <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
-    </sensor>
-    <emitter type="constant"><rgb name="radiance" value="0.6"/></emitter>
+def studio(environment: float) -> str:
+    """Light and backdrop of the translucent-object scenes: an environment, an area light
+    above, and a checkerboard behind the object so that transmission shows."""
+    return f"""<emitter type="constant"><rgb name="radiance" value="{environment}"/></emitter>
     <shape type="rectangle">
         <transform name="to_world"><scale value="0.8"/><rotate x="1" angle="70"/><translate value="0.8, 2.5, 1.5"/></transform>
         <emitter type="area"><rgb name="radiance" value="8"/></emitter>
@@ -31,7 +23,21 @@ PRINCIPLED = """<scene version="3.0.0">
                 <transform name="to_uv"><scale value="6"/></transform>
             </texture>
         </bsdf>
-    </shape>
+    </shape>"""
+
+
+PRINCIPLED = f"""<scene version="3.0.0">
+    <default name="resx" value="48"/>
+    <default name="resy" value="48"/>
+    <integrator type="path"><integer name="max_depth" value="6"/></integrator>
+    <sensor type="perspective">
+        <float name="fov" value="30"/>
+        <transform name="to_world"><lookat origin="0, 0.6, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="$resx"/><integer name="height" value="$resy"/>
+            <rfilter type="box"/></film>
+        <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+    </sensor>
+    {studio(0.6)}
     <shape type="sphere">
         <bsdf type="principled">
             <rgb name="base_color" value="0.41, 0.82, 0.99"/>
@@ -160,20 +166,7 @@ def glass_with_medium(res: int = 32) -> str:
     return f"""<scene version="3.0.0">
     <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
     {camera(res, "0, 0.5, 4")}
-    <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
-    <shape type="rectangle">
-        <transform name="to_world"><scale value="0.8"/><rotate x="1" angle="70"/><translate value="0.8, 2.5, 1.5"/></transform>
-        <emitter type="area"><rgb name="radiance" value="8"/></emitter>
-    </shape>
-    <shape type="rectangle">
-        <transform name="to_world"><scale value="3"/><translate value="0, 0, -1.5"/></transform>
-        <bsdf type="diffuse">
-            <texture type="checkerboard" name="reflectance">
-                <rgb name="color0" value="0.1"/><rgb name="color1" value="0.8"/>
-                <transform name="to_uv"><scale value="6"/></transform>
-            </texture>
-        </bsdf>
-    </shape>
+    {studio(0.5)}
     <shape type="sphere" id="blob">
         <bsdf type="roughdielectric">
             <float name="alpha" value="0.1"/>
