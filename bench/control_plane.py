@@ -105,18 +105,18 @@ def percentiles_ms(latencies: list[float]) -> str:
     return ", ".join(f"p{p} {common.percentile(latencies, p) * 1000:.1f} ms" for p in (50, 95, 99))
 
 
-def run(settings: Settings, shared: common.Daemon) -> Result:
+def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
-    iterations, rounds = (15, 2) if settings.quick else (50, 4)
-    client = shared.client
+    iterations, rounds = (10, 2) if settings.quick else (50, 4)
+    client = server.client
     scene = common.cornell(client, RES)
     ref_blob, _ = common.reference(client, scene, 64, settings.work)
     spec = common.wall_spec(scene, ref_blob, iterations=iterations, spp=SPP)
     warm = common.run_job(client, spec)  # warm-up: kernels compiled; its name serves idle polls
     common.require_success(warm, "control_plane warm-up")
 
-    idle = Load(shared.address, warm.job.name).start(watchers=0)
-    time.sleep(2.0 if settings.quick else 4.0)
+    idle = Load(server.address, warm.job.name).start(watchers=0)
+    time.sleep(1.0 if settings.quick else 4.0)
     idle.finish()
 
     rows: list[dict] = []
@@ -125,25 +125,31 @@ def run(settings: Settings, shared: common.Daemon) -> Result:
     latencies: list[float] = []
     loads: list[Load] = []
 
+    cpu: dict[str, list[float]] = {"alone": [], "loaded": []}
+
     def without(r: int) -> None:
-        run_ = common.run_job(client, spec)
+        run_ = common.run_job(client, spec, pid=server.pid)
         common.require_success(run_, "control_plane")
         alone.append(common.per_iteration(run_.seconds))
+        cpu["alone"].append(common.per_iteration(run_.cpu))
         rows.append({"round": r, "load": "none", "seconds_per_iteration": alone[-1],
-                     "wall_seconds_per_iteration": common.per_iteration(run_.arrivals)})
+                     "wall_seconds_per_iteration": common.per_iteration(run_.arrivals),
+                     "daemon_cpu_seconds_per_iteration": cpu["alone"][-1]})
 
     def under_load(r: int) -> None:
         load: list[Load] = []
         run_ = common.run_job(client, spec, on_created=lambda name: load.append(
-            Load(shared.address, name).start()))
+            Load(server.address, name).start()), pid=server.pid)
         load[0].finish()
         common.require_success(run_, "control_plane")
         loaded.append(common.per_iteration(run_.seconds))
+        cpu["loaded"].append(common.per_iteration(run_.cpu))
         latencies.extend(load[0].latencies)
         loads.append(load[0])
         rows.append({"round": r, "load": f"{RATE:g} GetJob/s + {WATCHERS} watchers",
                      "seconds_per_iteration": loaded[-1],
                      "wall_seconds_per_iteration": common.per_iteration(run_.arrivals),
+                     "daemon_cpu_seconds_per_iteration": cpu["loaded"][-1],
                      "getjob_rate": load[0].rate, "getjob_errors": load[0].errors,
                      "watch_events": load[0].events,
                      "p50_ms": common.percentile(load[0].latencies, 50) * 1000,
@@ -156,11 +162,15 @@ def run(settings: Settings, shared: common.Daemon) -> Result:
     slowdown = common.median(slowdowns)
     csv = common.write_csv(settings.out / "control_plane.csv", rows)
     rate = sum(len(x.latencies) for x in loads) / sum(x.ended - x.began for x in loads)
-    cpu = sum(x.cpu for x in loads) / sum(x.ended - x.began for x in loads)
+    client_cpu = sum(x.cpu for x in loads) / sum(x.ended - x.began for x in loads)
     return Result("control_plane", "Control plane under load", [
         Target(f"job slowdown per iteration at {RATE:g} GetJob/s + {WATCHERS} WatchJob streams",
                f"{slowdown:+.1%} (target < {TARGET:.0%})", slowdown < TARGET),
         Target("GetJob latency during the job", percentiles_ms(latencies), None),
+        Target("daemon CPU per iteration, loaded / alone (context: the extra work of serving "
+               "the load, which other tenants disturb far less than time)",
+               f"{common.median([b / a for a, b in zip(cpu['alone'], cpu['loaded'])]):.3f}",
+               None),
     ], [
         f"Job: Cornell box walls, {RES}x{RES}, {SPP} spp, {iterations} iterations; {rounds} "
         f"alternating rounds; {POLLERS} polling clients and {WATCHERS} watching clients, each "
@@ -172,5 +182,9 @@ def run(settings: Settings, shared: common.Daemon) -> Result:
         f"- slowdown per round: {', '.join(f'{s:+.1%}' for s in slowdowns)}; per iteration "
         f"alone {common.spread([a * 1000 for a in alone], '{:.0f}')} ms, loaded "
         f"{common.spread([b * 1000 for b in loaded], '{:.0f}')} ms",
-        f"- the load generator itself used {cpu:.0%} of one core on the same 2-core machine",
+        f"- daemon CPU per iteration: alone "
+        f"{common.spread([a * 1000 for a in cpu['alone']], '{:.0f}')} ms, loaded "
+        f"{common.spread([b * 1000 for b in cpu['loaded']], '{:.0f}')} ms",
+        f"- the load generator itself used {client_cpu:.0%} of one core on the same 2-core "
+        "machine",
     ], [csv], time.perf_counter() - began)

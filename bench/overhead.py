@@ -24,10 +24,10 @@ RES, SPP, LR = 128, 4, 0.03
 TARGET = 1.03  # daemon seconds per iteration / plain loop's
 
 
-def run(settings: Settings, shared: common.Daemon) -> Result:
+def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
-    iterations, rounds = (20, 2) if settings.quick else (50, 4)
-    client = shared.client
+    iterations, rounds = (15, 2) if settings.quick else (50, 4)
+    client = server.client
     scene = common.cornell(client, RES)
     ref_blob, ref_path = common.reference(client, scene, 256, settings.work)
     baseline = plain.PlainSpec(common.CORNELL_XML, ref_path, {k: common.GREY for k in common.WALLS},
@@ -42,7 +42,7 @@ def run(settings: Settings, shared: common.Daemon) -> Result:
     last_job = None
 
     def through_plain(r: int) -> None:
-        its = plain.run(baseline, shared.variant)
+        its = plain.run(baseline, server.variant)
         s = common.per_iteration([it.seconds for it in its])
         c = common.per_iteration([it.cpu for it in its])
         rows.append({"round": r, "method": "plain", "seconds_per_iteration": s,
@@ -56,7 +56,7 @@ def run(settings: Settings, shared: common.Daemon) -> Result:
     def through_daemon(r: int) -> None:
         nonlocal last_job
         run_ = common.run_job(client, common.wall_spec(scene, ref_blob, iterations=iterations,
-                                                       spp=SPP, seed=0), pid=shared.pid)
+                                                       spp=SPP, seed=0), pid=server.pid)
         common.require_success(run_, "overhead")
         s, w = common.per_iteration(run_.seconds), common.per_iteration(run_.arrivals)
         c = common.per_iteration(run_.cpu)

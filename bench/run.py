@@ -1,8 +1,9 @@
 """matopt's benchmarks: ``python bench/run.py [--quick] [--out bench/results]``.
 
-Runs every case against a daemon started here (``python -m matoptd`` on a loopback port, its
-variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; the plain-Mitsuba
-baselines use the same variant). Each case measures its own baseline in the same run,
+Runs each case against a daemon of its own, started here (``python -m matoptd`` on a loopback
+port, its variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; the plain-
+Mitsuba baselines use the same variant), so that no case inherits another's loaded scenes
+(which slow a daemon's jobs down: see live_scenes.py). Each case measures its own baseline in the same run,
 alternating with it, and reports ratios. Writes CSVs, PNG plots and summary.md to --out; a
 full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
 
@@ -32,16 +33,16 @@ os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
-CASES = ["overhead", "warm_start", "quality", "memory", "control_plane"]
+CASES = ["overhead", "warm_start", "quality", "memory", "control_plane", "live_scenes"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 
 
-def run_case(name: str, settings: Settings, shared: common.Daemon) -> Result:
+def run_case(name: str, settings: Settings, daemon: common.Daemon) -> Result:
     """One case; an exception becomes a failed result rather than ending the run."""
     began = time.perf_counter()
     print(f"bench: {name} ...", file=sys.stderr, flush=True)
     try:
-        result = importlib.import_module(name).run(settings, shared)
+        result = importlib.import_module(name).run(settings, daemon)
     except Exception as exc:  # noqa: BLE001 - reported in the summary
         traceback.print_exc()
         result = Result(name, name, [Target("case ran", f"FAILED: {type(exc).__name__}: {exc}",
@@ -129,11 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(args.out.resolve(), args.quick, work)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
+    results, info = [], None
     try:
-        with common.daemon(work, "shared") as shared:
-            info = shared.client.info
-            print(f"bench: daemon {info.variant} on {info.device}", file=sys.stderr)
-            results = [run_case(name, settings, shared) for name in args.only or CASES]
+        for name in args.only or CASES:
+            with common.daemon(work, name) as daemon:
+                if info is None:
+                    info = daemon.client.info
+                    print(f"bench: daemon {info.variant} on {info.device}", file=sys.stderr)
+                results.append(run_case(name, settings, daemon))
     finally:
         shutil.rmtree(work, ignore_errors=True)
     seconds = time.perf_counter() - began
