@@ -24,6 +24,7 @@ from grpc_reflection.v1alpha import reflection
 
 from . import __version__
 from .auth import Authenticator, load_tokens
+from .engine.variant import configure_environment
 from .scheduler import Scheduler
 from .server import Service, add_services
 from .store import Store
@@ -84,6 +85,8 @@ async def serve(args: argparse.Namespace) -> None:
         raise SystemExit("matoptd: --tls-cert and --tls-key go together")
 
     args.data_dir.mkdir(parents=True, exist_ok=True)
+    # Dr.Jit reads DRJIT_CACHE_DIR and DRJIT_LIBLLVM_PATH once, when it is first imported.
+    configure_environment(args.data_dir)
     store = Store(args.data_dir)
     scheduler = Scheduler(store, args.data_dir, args.variant)
     try:

@@ -299,7 +299,12 @@ class Scheduler:
                 log.exception("could not checkpoint %s on shutdown", name)
 
     def _turn(self, name: str) -> None:
-        """One iteration of one job, with everything that can go wrong contained to it."""
+        """One iteration of one job, with everything that can go wrong contained to it.
+
+        Scenes kept loaded for renders are dropped first: Mitsuba dispatches a virtual call
+        (a BSDF's, an emitter's) over every live instance in the process, so each scene held
+        makes every job's kernels bigger (bench/live_scenes.py measures it)."""
+        self._scene_cache.clear()
         try:
             job = self.store.get_job(name)
         except UserError:  # deleted meanwhile
