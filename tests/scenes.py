@@ -238,3 +238,31 @@ def grid_volume(res: int = 32) -> str:
     </shape>
 </scene>
 """
+
+
+QUAD_IN_FRONT = """<scene version="3.0.0">
+    <integrator type="direct"/>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+            <rfilter type="box"/></film>
+    </sensor>
+    <emitter type="constant"/>
+    <shape type="rectangle">
+        <transform name="to_world"><scale value="2"/><translate value="0, 0, -1"/></transform>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.1"/></bsdf>
+    </shape>
+    <shape type="obj" id="quad">
+        <string name="filename" value="quad.obj"/>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf>
+    </shape>
+</scene>
+"""
+
+QUAD_CORNERS = [[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]]
+
+
+def quad_obj(corners=QUAD_CORNERS) -> bytes:
+    """quad.obj of QUAD_IN_FRONT: two triangles."""
+    return ("".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "f 1 2 3\nf 1 3 4\n").encode()

@@ -15,8 +15,8 @@ import pytest
 from matopt.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
-from scenes import (colored_mesh, create_scene, glass_with_medium, grid_volume, png,
-                    textured_quad, upload, vol)
+from scenes import (QUAD_CORNERS, QUAD_IN_FRONT, colored_mesh, create_scene,
+                    glass_with_medium, grid_volume, png, quad_obj, textured_quad, upload, vol)
 
 
 def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[float] | str],
@@ -225,39 +225,17 @@ def load_exported_scene(directory, main: str):
     return scene, mi.traverse(scene)
 
 
-QUAD_IN_FRONT = """<scene version="3.0.0">
-    <integrator type="direct"/>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
-            <rfilter type="box"/></film>
-    </sensor>
-    <emitter type="constant"/>
-    <shape type="rectangle">
-        <transform name="to_world"><scale value="2"/><translate value="0, 0, -1"/></transform>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0.1"/></bsdf>
-    </shape>
-    <shape type="obj" id="quad">
-        <string name="filename" value="quad.obj"/>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf>
-    </shape>
-</scene>
-"""
-
-
 @pytest.mark.slow
 def test_vertex_positions_with_a_projective_integrator(stubs, daemon, tmp_path):
     """Geometry: a quad shifted by (0.2, 0.1) slides back onto its silhouette. Needs projective
     sampling of visibility edges (direct_projective here: ~2 s per iteration even at 16x16 on
     2 CPU cores, hence `slow`). Depth along the view axis is barely observable, so the check is
     on the quad's centre in the image plane; the export writes the moved mesh as PLY."""
-    truth = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float32) * 0.5
+    truth = np.array(QUAD_CORNERS, dtype=np.float32)
     key = "quad.vertex_positions"
     start = (truth + [0.2, 0.1, 0]).ravel().tolist()
-    obj = "".join(f"v {x} {y} {z}\n" for x, y, z in truth) + "f 1 2 3\nf 1 3 4\n"
     params, got, done = recover(stubs, {"quad.xml": QUAD_IN_FRONT.encode(),
-                                        "quad.obj": obj.encode()}, "quad.xml", {key: start},
+                                        "quad.obj": quad_obj()}, "quad.xml", {key: start},
                                 iterations=30, spp=8, learning_rates={key: 0.02})
     assert done.integrator == "direct_projective", done.integrator_reason
     centre = got[key].reshape(-1, 3).mean(axis=0)
