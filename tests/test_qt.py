@@ -336,7 +336,8 @@ def test_daemon_going_away_mid_job(qtbot, tmp_path, caplog, capfd):
         qtbot.waitUntil(lambda: f"lost connection to matoptd at {address}: UNAVAILABLE"
                         in window.banner.text(), timeout=30000)
         assert window.banner.level == "error"
-        daemon.proc.wait(timeout=60)
+        # Wait with the GUI's event loop running (proc.wait() would block it here, not the app).
+        qtbot.waitUntil(lambda: daemon.proc.poll() is not None, timeout=60000)
 
         # Responsive while the daemon is gone: timers fire on time, the table filters.
         ticks = []
