@@ -142,15 +142,15 @@ def camera(res: int, origin: str = "0, 0, 4", fov: float = 30) -> str:
     </sensor>"""
 
 
-def textured_quad(res: int = 32) -> str:
-    """A quad filling the view with an 8-bit PNG base colour, lit by a white environment."""
+def textured_quad(res: int = 32, bsdf: str = "diffuse", colour: str = "reflectance") -> str:
+    """A quad filling the view with an 8-bit PNG colour texture, lit by a white environment."""
     return f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="3"/></integrator>
     {camera(res, fov=32)}
     <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
     <shape type="rectangle" id="quad">
-        <bsdf type="diffuse">
-            <texture type="bitmap" name="reflectance">
+        <bsdf type="{bsdf}">
+            <texture type="bitmap" name="{colour}">
                 <string name="filename" value="textures/albedo.png"/>
                 <string name="filter_type" value="nearest"/>
             </texture>
@@ -160,19 +160,19 @@ def textured_quad(res: int = 32) -> str:
 """
 
 
-def glass_with_medium(res: int = 32) -> str:
-    """Thesis Table 4: a rough dielectric sphere filled with a homogeneous medium, in front of a
-    checkerboard, lit by an environment and an area light."""
+def glass_with_medium(res: int = 32, thin: bool = False) -> str:
+    """Thesis Table 4: a rough (or thin) dielectric sphere filled with a homogeneous medium, in
+    front of a checkerboard, lit by an environment and an area light."""
+    bsdf = ('<bsdf type="thindielectric"><float name="int_ior" value="1.49"/>'
+            '<float name="ext_ior" value="1"/></bsdf>') if thin else (
+        '<bsdf type="roughdielectric"><float name="alpha" value="0.1"/>'
+        '<float name="int_ior" value="1.49"/><float name="ext_ior" value="1"/></bsdf>')
     return f"""<scene version="3.0.0">
     <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
     {camera(res, "0, 0.5, 4")}
     {studio(0.5)}
     <shape type="sphere" id="blob">
-        <bsdf type="roughdielectric">
-            <float name="alpha" value="0.1"/>
-            <float name="int_ior" value="1.49"/>
-            <float name="ext_ior" value="1"/>
-        </bsdf>
+        {bsdf}
         <medium type="homogeneous" name="interior">
             <rgb name="albedo" value="0.412, 0.824, 0.999"/>
             <float name="sigma_t" value="0.4"/>
