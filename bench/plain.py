@@ -135,6 +135,7 @@ def first_iteration(variant: str, xml: Path, reference: Path, overrides: dict[st
         opt[key] = dr.clip(opt[key], 0.0, 1.0)
     params.update(opt)
     dr.eval(*(opt[key] for key in keys))
+    dr.sync_thread()  # the LLVM backend launches asynchronously: wait until it has run
     t["first_iteration"] = time.time()
     return t
 

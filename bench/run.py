@@ -33,8 +33,8 @@ os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
-CASES = ["overhead", "warm_start", "quality", "memory", "control_plane", "live_scenes",
-         "geometry"]
+CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
+         "live_scenes", "geometry"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 
 

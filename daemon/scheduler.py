@@ -17,6 +17,7 @@ import asyncio
 import collections
 import logging
 import threading
+import time
 import traceback
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -168,12 +169,16 @@ class Scheduler:
                     del self._watchers[name]
 
     def _publish(self, name: str, event: pb.JobEvent) -> None:
+        """Hands the event to every watcher: one wake-up per event loop, not per watcher, since
+        each wake-up takes the GIL from the worker while it prepares the next render."""
+        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Queue]] = {}
         with self._lock:
-            targets = list(self._watchers.get(name, _Watchers()).queues)
-        for loop, q in targets:
+            for loop, q in self._watchers.get(name, _Watchers()).queues:
+                by_loop.setdefault(loop, []).append(q)
+        for loop, queues in by_loop.items():
             try:
-                loop.call_soon_threadsafe(_offer, q, event)
-            except RuntimeError:  # that loop is closed: its watcher is gone
+                loop.call_soon_threadsafe(_offer, queues, event)
+            except RuntimeError:  # that loop is closed: its watchers are gone
                 pass
 
     def _save(self, job: pb.Job) -> None:
@@ -365,6 +370,7 @@ class Scheduler:
     def _iterate(self, job: pb.Job, run: Run) -> None:
         opt = run.opt
         step = opt.step()
+        stepped = time.perf_counter()
         record = pb.IterationRecord(
             iteration=step.iteration, seconds=opt.elapsed, loss=step.loss,
             parameters=self.engine().values_to_proto(step.values, run.shapes, None),
@@ -378,15 +384,17 @@ class Scheduler:
             job.loss = step.loss
             job.best_iteration, job.best_loss = opt.best.iteration, opt.best.loss
             job.elapsed_seconds = opt.elapsed
-            job.nonfinite_gradient_steps = opt.nonfinite_steps
-            job.skipped_steps = opt.skipped_steps
-            job.clamped_components = opt.clamped
+            _count_guards(job, opt)
             self.store.put_job(job)
         self._publish(job.name, pb.JobEvent(iteration=record))
         if step.done:
             self._finish(job, run, pb.SUCCEEDED, step.stop_reason, last=step)
-        elif opt.iteration % CHECKPOINT_EVERY == 0:
+            return
+        if opt.iteration % CHECKPOINT_EVERY == 0:
             self._checkpoint(job.name, run)
+        # Recording and checkpointing are the job's work too: on its clock from the next
+        # iteration's time on.
+        opt.elapsed += time.perf_counter() - stepped
 
     def _finish(self, job: pb.Job, run: Run, state: int, reason: str, last=None) -> None:
         opt = run.opt
@@ -403,10 +411,10 @@ class Scheduler:
         for res in self.engine().results(opt, job.name, chosen, run.shapes, run.kinds,
                                           self.store.put_blob, scene, self.loadable(scene)):
             self.store.put_result(res)
-        notes = self.engine().diagnose(opt, chosen[-1][3] if chosen else {},
-                                       [h.loss for h in history])
+        notes = self.engine().diagnose(opt, chosen[-1][3] if chosen else {}, history)
         with self._lock:
             self._drop(job.name)
+            _count_guards(job, opt)  # diagnose() read the last step's counts
             job.notes.extend(notes)
             job.state, job.stop_reason = state, reason
             self._save(job)
@@ -430,12 +438,20 @@ class Scheduler:
         return self.store.blob_file(name).read_bytes()
 
 
-def _offer(q: asyncio.Queue, event: pb.JobEvent) -> None:
-    """Queues an event for a watcher; a watcher too slow to keep up loses iteration events,
+def _count_guards(job: pb.Job, opt) -> None:
+    """The job's guard counters; the latest step's are added at the next read of values."""
+    job.nonfinite_gradient_steps = opt.nonfinite_steps
+    job.skipped_steps = opt.skipped_steps
+    job.clamped_components = opt.clamped
+
+
+def _offer(queues: list[asyncio.Queue], event: pb.JobEvent) -> None:
+    """Queues an event for watchers; a watcher too slow to keep up loses iteration events,
     never state changes (the final one ends its stream)."""
-    try:
-        q.put_nowait(event)
-    except asyncio.QueueFull:
-        if event.HasField("job"):
-            q.get_nowait()
+    for q in queues:
+        try:
             q.put_nowait(event)
+        except asyncio.QueueFull:
+            if event.HasField("job"):
+                q.get_nowait()
+                q.put_nowait(event)

@@ -31,7 +31,7 @@ log = logging.getLogger("matoptd.server")
 
 DEFAULT_ITERATIONS = 100
 DEFAULT_MIN_ERROR = 0.001
-DEFAULT_SPP = 4
+DEFAULT_SPP = 16  # see parameters.DEFAULT_LEARNING_RATE: the same measurement
 DEFAULT_PAGE, MAX_PAGE = 50, 1000
 
 

@@ -58,7 +58,7 @@ def test_cornell_box_parameters_have_kinds_values_and_ranges(stubs):
     red = params["red.reflectance.value"]
     assert red.kind == pb.RGB and list(red.shape) == [3]
     assert red.value == pytest.approx([0.570068, 0.0430135, 0.0443706], abs=1e-6)
-    assert (red.min, red.max, red.default_learning_rate) == (0.0, 1.0, pytest.approx(0.03))
+    assert (red.min, red.max, red.default_learning_rate) == (0.0, 1.0, pytest.approx(0.1))
     assert params["light.emitter.radiance.value"].max == float("inf")
     assert params["small-box.vertex_positions"].kind == pb.VERTEX_ARRAY
 

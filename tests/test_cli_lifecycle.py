@@ -62,8 +62,8 @@ def test_session_across_restart(own_daemon, tmp_path):
 
     # A finished job, waited for with a progress display.
     done = matopt(d, "job", "start", scene, "--ref", str(ref), "--param", KEY,
-                  "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--wait",
-                  "--truth", f"{KEY}=0.2,0.4,0.6")
+                  "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--min-error", "0",
+                  "--wait", "--truth", f"{KEY}=0.2,0.4,0.6")
     job = done.stdout.strip().splitlines()[0]
     status = as_json(d, "job", "status", job)
     assert status["state"] == "SUCCEEDED" and status["iteration"] == 60

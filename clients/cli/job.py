@@ -98,7 +98,7 @@ def _is_blob(image: str) -> bool:
 @click.option("--schedule", type=click.Choice(sorted(SCHEDULES), case_sensitive=False),
               help="learning-rate schedule [daemon default: cosine]")
 @click.option("--iterations", type=int, help="optimization steps [daemon default: 100]")
-@click.option("--spp", type=int, help="samples per pixel of each step [daemon default: 4]")
+@click.option("--spp", type=int, help="samples per pixel of each step [daemon default: 16]")
 @click.option("--min-error", type=float,
               help="stop once the loss is below this [daemon default: 0.001]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")

@@ -1116,7 +1116,7 @@ def inherited(spec: pb.JobSpec) -> list[str]:
     out = []
     if spec.seed:
         out.append(f"seed {spec.seed}")
-    if spec.HasField("learning_rate") and abs(spec.learning_rate - 0.03) > 1e-7:
+    if spec.HasField("learning_rate"):
         out.append(f"default learning rate {spec.learning_rate:g}")
     if spec.resolution:
         out.append(f"film height {spec.resolution} px")

@@ -1,6 +1,6 @@
 """The job's settings besides parameters and references: loss, schedule, iterations, spp,
 min error, how sensors step, clamping. The fields start at the daemon's documented defaults
-(the thesis's: MSE, 100 iterations, 4 spp, min error 0.001, cosine decay) so that what the
+(MSE, 100 iterations, 16 spp, min error 0.001, cosine decay) so that what the
 user sees is what runs. The losses offered are the API's Loss enum, so a loss the daemon
 gains shows up here without a change to this file (named after the enum, lowercase, as the
 CLI names them).
@@ -56,7 +56,7 @@ class JobSettings(QWidget):
         self.iterations.setValue(100)
         self.spp = QSpinBox()
         self.spp.setRange(1, 65536)
-        self.spp.setValue(4)
+        self.spp.setValue(16)
         self.spp.setToolTip("samples per pixel of each optimization step")
         self.min_error = QLineEdit("0.001")
         validator = QDoubleValidator(0.0, 1e30, 12)

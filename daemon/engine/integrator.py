@@ -10,15 +10,26 @@ import mitsuba as mi
 from .scene import has_media
 
 DEFAULT_MAX_DEPTH = 8
+# An unbounded depth (-1) is capped for optimization. Russian roulette ends a path by its
+# throughput, and with albedo near 1 the throughput hardly falls: in an optically thick medium
+# a path can scatter thousands of times, and a symbolic loop runs until its longest lane ends
+# (in the adjoint pass as well). 64 bounces keep all but a sliver of the light in the cases of
+# bench/stability.py while bounding each iteration's cost.
+DEPTH_CAP = 64
 _GEOMETRY = ("vertex_positions", "to_world")
 
 
 def max_depth(scene: mi.Scene) -> tuple[int, str]:
     """The scene's own integrator depth, so the optimized image matches the scene's look."""
     m = re.search(r"max_depth\s*=\s*(-?\d+)", str(scene.integrator()))
-    if m:
-        return int(m.group(1)), "the scene's"
-    return DEFAULT_MAX_DEPTH, "default"
+    if not m:
+        return DEFAULT_MAX_DEPTH, "default"
+    depth = int(m.group(1))
+    if depth < 0 or depth > DEPTH_CAP:
+        shown = "unbounded depth" if depth < 0 or depth >= 2**31 else depth
+        return DEPTH_CAP, (f"the scene's {shown} capped: long paths (albedo near 1) would "
+                           "make every iteration as slow as its longest path")
+    return depth, "the scene's"
 
 
 def choose(scene: mi.Scene, selected: list[str]) -> tuple[mi.Integrator, str, str]:

@@ -3,7 +3,8 @@ the reference is NaN/Inf, 1 elsewhere) to a scalar Dr.Jit tensor with gradients.
 says how many independent renders a loss needs.
 
 Means are weighted: mean_w(x) = sum(w * x) / sum(w), so masked pixels neither count nor
-dilute the loss.
+dilute the loss. A reference without NaN/Inf pixels has no weight (``None``): its losses are
+plain means, one reduction less per iteration.
 """
 
 from __future__ import annotations
@@ -31,7 +32,9 @@ class Loss:
     window: int = 1
 
 
-def _mean(x: Tensor, w: Tensor) -> Tensor:
+def _mean(x: Tensor, w: Tensor | None) -> Tensor:
+    if w is None:
+        return dr.mean(x, axis=None)
     return dr.sum(w * x, axis=None) / dr.maximum(dr.sum(w, axis=None), 1.0)
 
 
@@ -81,7 +84,8 @@ def _multiscale(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
     # levels see low-frequency errors with little noise; the full level keeps detail.
     img, total = images[0], _mse(images, ref, w)
     while min(int(s) for s in img.shape[:2]) >= 16:
-        img, ref, w = half(img), half(ref), half(w)
+        img, ref = half(img), half(ref)
+        w = None if w is None else half(w)
         total += _mse([img], ref, w)
     return total
 

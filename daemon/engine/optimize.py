@@ -14,6 +14,9 @@ Guards (Dr.Jit 1.5's dr.clip propagates NaN, and Adam has no NaN guard of its ow
 - a loss that is NaN/Inf skips the step entirely. Counted in ``skipped_steps``.
 - after the step each parameter is clipped into its [min, max]; components the step pushed
   out are counted in ``clamped``.
+The guards never wait for the device: their counts are symbolic sums, evaluated with the next
+iteration's parameter values in one launch. The plain loop syncs once per iteration (reading
+the loss); so does this one, and Python traces the next render while the backward pass runs.
 
 Parameters that are positive and unbounded above (radiance, extinction, scales) are optimized
 as u = log(v): a step of size lr changes v by a factor of about e^lr, the same relative change
@@ -55,8 +58,15 @@ class Setting:
 
 @dataclass
 class Reference:
-    image: mi.TensorXf   # (H, W, 3), linear; masked pixels hold 0
-    weight: mi.TensorXf  # (H, W, 3): 0 where the reference was NaN/Inf, else 1
+    image: mi.TensorXf           # (H, W, 3), linear; masked pixels hold 0
+    weight: mi.TensorXf | None   # (H, W, 3): 0 where the reference was NaN/Inf, else 1; None
+                                 # when every pixel is finite
+
+    def mask(self) -> np.ndarray:
+        """The weight as an array (ones when there is none)."""
+        if self.weight is None:
+            return np.ones(tuple(int(s) for s in self.image.shape), dtype=np.float32)
+        return np.asarray(self.weight)
 
 
 @dataclass
@@ -123,6 +133,7 @@ class Optimization:
         self.params = mi.traverse(scene)
         self.scene_values = {k: parameters.flat(self.params[k]) for k in self.settings}
         self.params.keep(list(self.settings))
+        self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         for key, s in self.settings.items():
             start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
@@ -156,7 +167,22 @@ class Optimization:
         self.params.update()
 
     def values(self) -> dict[str, np.ndarray]:
-        return {k: parameters.flat(self._value(k)) for k in self.settings}
+        """theta, read in one launch together with the guard counts of the last step."""
+        values = {k: self._value(k) for k in self.settings}
+        self.flush(*values.values())
+        return {k: parameters.flat(v) for k, v in values.items()}
+
+    def flush(self, *also) -> None:
+        """Evaluates the pending guard counts (and ``also``) and adds them to the counters."""
+        dr.eval(*also, *(count for _, count in self._pending))
+        for counter, count in self._pending:
+            setattr(self, counter, getattr(self, counter) + round(count[0]))
+        self._pending.clear()
+
+    @staticmethod
+    def _true(mask) -> mi.Float:
+        """How many components of ``mask`` are true, as a symbolic sum: no launch, no wait."""
+        return dr.sum(dr.select(dr.ravel(mask), 1.0, 0.0), axis=None, mode="symbolic")
 
     def _sensor_loss(self, i: int, n: int, sensor: int, ref: Reference):
         renders = self.loss.renders
@@ -175,7 +201,7 @@ class Optimization:
         start = time.perf_counter()
         i, c = self.iteration, self.config
         last = i + 1 >= c.iterations
-        theta = self.values()
+        self._theta = None  # theta_i, read once the first render has evaluated it
         self._judged = None  # the windowed loss of this iteration, once known
         if c.step_per_sensor and len(self.references) > 1:
             loss = self._step_per_sensor(i, last)
@@ -187,6 +213,7 @@ class Optimization:
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
                 self._descend(total, loss, i)
+        theta = self._read_theta()
         judged = self._judge(loss)
         if judged is not None and judged < self.best.loss:
             self.best = Best(i, judged, theta)
@@ -224,7 +251,15 @@ class Optimization:
                 self._descend(total, losses[-1], i)
         return float(np.mean(losses))
 
+    def _read_theta(self) -> dict[str, np.ndarray]:
+        """theta_i, before the first step changes it. Read after the loss, not before the
+        render: reading syncs, and the render has evaluated these values anyway."""
+        if self._theta is None:
+            self._theta = self.values()
+        return self._theta
+
     def _descend(self, total, loss: float, i: int) -> None:
+        self._read_theta()
         if not math.isfinite(loss):
             self.skipped_steps += 1
             return
@@ -237,8 +272,7 @@ class Optimization:
             if s.log:
                 self.opt[key] = dr.clip(value, -LATENT_LIMIT, LATENT_LIMIT)
                 continue
-            outside = dr.count((value < s.lo) | (value > s.hi), axis=None)
-            self.clamped += int(np.asarray(outside).sum())
+            self._pending.append(("clamped", self._true((value < s.lo) | (value > s.hi))))
             self.opt[key] = dr.clip(value, s.lo, s.hi)
         self._apply()
 
@@ -251,15 +285,14 @@ class Optimization:
         self.opt.set_learning_rate({k: s.learning_rate * f for k, s in self.settings.items()})
 
     def _sanitize_gradients(self) -> None:
-        bad_step = False
+        bad = 0
         for key in self.settings:
             value = self.opt[key]
             grad = dr.grad(value)
             finite = dr.isfinite(grad)
-            if not dr.all(finite, axis=None):
-                bad_step = True
-                dr.set_grad(value, dr.select(finite, grad, 0))
-        self.nonfinite_steps += bad_step
+            dr.set_grad(value, dr.select(finite, grad, 0))
+            bad += self._true(~finite)
+        self._pending.append(("nonfinite_steps", dr.select(bad > 0, 1.0, 0.0)))
 
     # -- renders off the clock --------------------------------------------------------------
 
@@ -288,7 +321,7 @@ class Optimization:
         se = n = 0.0
         for sensor, ref in self.references.items():
             img = self.render(values, sensor, self.config.image_error_spp)
-            w = np.asarray(ref.weight)
+            w = ref.mask()
             se += float(np.sum(w * (img - np.asarray(ref.image)) ** 2))
             n += float(np.sum(w))
         self.elapsed -= time.perf_counter() - began
@@ -299,6 +332,7 @@ class Optimization:
     def checkpoint(self) -> bytes:
         """Everything needed to continue exactly: values, Adam's moments and step counts, the
         best iteration so far, counters and the clock."""
+        self.flush()
         arrays: dict[str, np.ndarray] = {
             "meta": np.array([self.iteration, self.elapsed, self.best.iteration, self.best.loss,
                               self.nonfinite_steps, self.skipped_steps, self.clamped],

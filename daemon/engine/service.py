@@ -137,7 +137,7 @@ def _references(scene: mi.Scene, spec: pb.JobSpec, paths: dict[int, tuple[Path, 
                          "out of the loss")
         weight = np.broadcast_to(valid, image.shape).astype(np.float32)
         refs[index] = Reference(mi.TensorXf(np.where(weight > 0, image, 0.0)),
-                                mi.TensorXf(weight))
+                                None if valid.all() else mi.TensorXf(weight))
     return refs
 
 
@@ -170,10 +170,17 @@ def start_job(scene: mi.Scene, spec: pb.JobSpec, reference_paths: dict[int, tupl
     return opt
 
 
-def diagnose(opt: Optimization, values: dict[str, np.ndarray], losses: list[float]
-             ) -> list[str]:
-    return diagnosis.diagnose(opt.settings, values, losses, opt.nonfinite_steps,
-                              opt.skipped_steps)
+def diagnose(opt: Optimization, values: dict[str, np.ndarray],
+             history: list[pb.IterationRecord]) -> list[str]:
+    opt.flush()
+    paths: dict[str, list[list[float]]] = {}
+    for record in history:
+        for v in record.parameters:
+            if v.value:
+                paths.setdefault(v.key, []).append(list(v.value))
+    return diagnosis.diagnose(opt.settings, values, [h.loss for h in history],
+                              opt.nonfinite_steps, opt.skipped_steps,
+                              {k: np.array(p) for k, p in paths.items() if len(p) == len(history)})
 
 
 def values_to_proto(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
@@ -229,7 +236,7 @@ def results(opt: Optimization, job: str,
                            initial_parameters=initial)
         for sensor, (reference, (first, ref_image)) in shared.items():
             optimized = opt.render(values, sensor, spp)
-            error = np.abs(optimized - reference) * np.array(opt.references[sensor].weight)
+            error = np.abs(optimized - reference) * opt.references[sensor].mask()
             res.images.extend([first, _image(put_blob, optimized, sensor, "optimized"),
                                ref_image, _image(put_blob, error, sensor, "error")])
         for key, v in values.items():
