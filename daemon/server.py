@@ -216,6 +216,14 @@ class Scenes(rpc.ScenesServicer):
     @unary
     async def DeleteScene(self, request, context, user):
         name = _name("scenes", request.name)
+        self.store.get_scene(user, name)  # NOT_FOUND first
+        using = [j.name for j in self.store.list_jobs(user, 0, 1 << 30)
+                 if j.spec.scene == name and j.state not in FINAL]
+        if using:
+            raise FailedPrecondition(
+                f"scene '{name}' is used by {len(using)} unfinished job(s) "
+                f"({', '.join(using[:3])}{', ...' if len(using) > 3 else ''}): a paused or "
+                "interrupted job reloads its scene to resume; cancel or delete them first")
         self.store.delete_scene(user, name)
         await self.scheduler.call(lambda: self.scheduler.forget_scene(name))
         return pb.DeleteSceneResponse()

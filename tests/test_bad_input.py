@@ -141,3 +141,20 @@ def test_mean_bias_error_is_refused_as_an_objective(stubs, cornell):
         scene, [pb.Reference(blob=ref.exr_blob)], loss=pb.MEAN_BIAS_ERROR))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "diagnostic, not an objective" in err.details()
+
+
+def test_a_scene_in_use_is_not_deleted(stubs, cornell):
+    """A paused job reloads its scene to resume: deleting the scene under it is refused, with
+    the job named; once the job has ended, the scene can go."""
+    _, ref = cornell
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "16", "resy": "16"}))
+    job = stubs.jobs.CreateJob(job_request(scene, [pb.Reference(blob=ref.exr_blob)],
+                                           iterations=100000))
+    stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
+    err = rpc_error(stubs.scenes.DeleteScene, pb.DeleteSceneRequest(name=scene.name))
+    assert err.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert job.name in err.details() and "unfinished" in err.details()
+    stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+    stubs.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))
+    err = rpc_error(stubs.scenes.GetScene, pb.GetSceneRequest(name=scene.name))
+    assert err.code() == grpc.StatusCode.NOT_FOUND
