@@ -141,10 +141,11 @@ class Scheduler:
         """The prepared copy of the scene's main XML (stable ids, float textures, ...)."""
         return (self.scene_dir(scene.name) / scene.main_file).parent / scenes.LOADABLE_NAME
 
-    def load_scene(self, scene: pb.Scene) -> Any:
-        """A fresh Mitsuba scene (worker thread only). Jobs get their own: they change it."""
+    def load_scene(self, scene: pb.Scene, keys: list[str] | None = None) -> Any:
+        """A fresh Mitsuba scene (worker thread only). Jobs get their own: they change it.
+        With the ``keys`` a job optimizes, meshes that do not carry them may be merged."""
         return self.engine().load(self.loadable(scene), dict(scene.overrides),
-                                  scene.main_file or scene.display_name)
+                                  scene.main_file or scene.display_name, keys)
 
     def forget_scene(self, name: str) -> None:
         self._scene_cache.pop(name, None)
@@ -310,13 +311,19 @@ class Scheduler:
         (a BSDF's, an emitter's) over every live instance in the process, so each scene held
         makes every job's kernels bigger (bench/live_scenes.py measures it)."""
         self._scene_cache.clear()
-        try:
-            job = self.store.get_job(name)
-        except UserError:  # deleted meanwhile
-            self._drop(name)
-            return
+        with self._lock:
+            try:
+                job = self.store.get_job(name)
+            except UserError:  # deleted meanwhile
+                self._drop(name)
+                return
+            if name not in self._runs and job.state != pb.QUEUED:
+                self._drop(name)  # paused or cancelled after this turn was chosen
+                return
         try:
             run = self._runs.get(name) or self._load(job)
+            if run is None:
+                return
             with self._lock:
                 control = run.control
                 if job.state == pb.QUEUED and not control:  # resumed while kept in memory
@@ -340,7 +347,9 @@ class Scheduler:
             log.error("job %s failed:\n%s", name, traceback.format_exc())
             self._fail(job, f"internal error: {type(exc).__name__}: {exc}")
 
-    def _load(self, job: pb.Job) -> Run:
+    def _load(self, job: pb.Job) -> Run | None:
+        """Loads a queued job onto the worker; None when a handler paused or cancelled it
+        while its scene loaded (it was not in ``_runs`` yet, so the handler changed it)."""
         scene = self.store.get_scene(job.owner, job.spec.scene)
         refs = {}
         for i, ref in enumerate(job.spec.references):
@@ -348,13 +357,17 @@ class Scheduler:
             refs[index] = (self.store.blob_file(ref.blob), ref.filename or ref.blob)
         blob = self.store.checkpoint(job.name)
         checkpoint = self.store.blob_file(blob).read_bytes() if blob else None
-        opt = self.engine().start_job(self.load_scene(scene), job.spec, refs,
+        keys = [p.key for p in job.spec.parameters]
+        opt = self.engine().start_job(self.load_scene(scene, keys), job.spec, refs,
                                       self._read_blob, checkpoint)
         params = {p.key: p
                   for p in self.store.scene_parameters(job.owner, job.spec.scene).parameters}
         run = Run(opt, {k: list(params[k].shape) for k in opt.settings},
                   {k: params[k].kind for k in opt.settings})
         with self._lock:
+            if self.store.get_job(job.name).state != pb.QUEUED:
+                self._drop(job.name)
+                return None
             self._runs[job.name] = run
             job.state = pb.RUNNING
             job.integrator, job.integrator_reason = opt.integrator_name, opt.integrator_reason

@@ -8,6 +8,7 @@ import pytest
 
 from matopt.v1 import matopt_pb2 as pb
 
+from conftest import wait_state
 from scenes import MESH_SCENE, QUAD_OBJ, create_scene, upload
 
 
@@ -155,6 +156,7 @@ def test_a_scene_in_use_is_not_deleted(stubs, cornell):
     assert err.code() == grpc.StatusCode.FAILED_PRECONDITION
     assert job.name in err.details() and "unfinished" in err.details()
     stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+    wait_state(stubs, job.name, (pb.CANCELLED,))
     stubs.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))
     err = rpc_error(stubs.scenes.GetScene, pb.GetSceneRequest(name=scene.name))
     assert err.code() == grpc.StatusCode.NOT_FOUND

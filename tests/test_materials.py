@@ -219,7 +219,7 @@ def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
 def test_emitter_radiance_alone_and_jointly_with_a_wall(stubs):
     """Area light radiance (values near 18, far outside [0, 1]) alone, then together with the
     red wall's reflectance (the scales differ by two orders of magnitude), all at the default
-    learning rate: radiance is optimized in log space, so 0.03 is a 3% step at any scale."""
+    learning rate: radiance is optimized in log space, so 0.1 is a 10% step at any scale."""
     light, red = "light.emitter.radiance.value", "red.reflectance.value"
     truth = {light: [18.387, 13.9873, 6.75357], red: [0.570068, 0.0430135, 0.0443706]}
     scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",

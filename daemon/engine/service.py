@@ -31,8 +31,9 @@ def init(requested_variant: str | None, data_dir: Path) -> tuple[str, str]:
     return variant.select(requested_variant)
 
 
-def load(loadable: Path, overrides: dict[str, str], display: str) -> mi.Scene:
-    return scenes.load(loadable, overrides, display)
+def load(loadable: Path, overrides: dict[str, str], display: str,
+         keys: list[str] | None = None) -> mi.Scene:
+    return scenes.load(loadable, overrides, display, keys)
 
 
 def inspect(scene: mi.Scene) -> tuple[list[pb.Sensor], bool, list[pb.Parameter]]:
