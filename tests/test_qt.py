@@ -225,9 +225,11 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
                                                                       "resy": "32"}))
     ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=16)).images[0]
+    truth = [pb.ParameterValue(key=p.key, value=p.value) for p in stubs.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in WALLS]
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
         scene=scene.name, iterations=25, min_error=0, seed=7, loss=pb.MAE,
-        sensor_mode=pb.STEP_PER_SENSOR, clamp=True,
+        sensor_mode=pb.STEP_PER_SENSOR, clamp=True, ground_truth=truth,
         references=[pb.Reference(blob=ref.exr_blob, filename="cli-ref.exr")],
         parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS])))
     qtbot.waitUntil(lambda: job.name in window.jobs.names(), timeout=15000)  # periodic refresh
@@ -246,6 +248,12 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     assert "seed 7" in window.kept_label.text()
     qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
     qtbot.waitUntil(lambda: sorted(window.view.plot.points) == list(range(25)), timeout=15000)
+    # With ground truth, each wall's relative error is plotted against time beside the loss,
+    # falling from the grey start (the plot draws it: the legend names both walls).
+    errors = window.view.plot.error_points()
+    assert sorted(errors) == sorted(WALLS) and all(len(errors[k]) == 25 for k in WALLS)
+    assert all(errors[k][-1][1] < errors[k][0][1] for k in WALLS)
+    window.view.plot.grab()
     # The daemon's PNG of the EXR reference appears with the results.
     qtbot.waitUntil(lambda: window.view.reference.has_image(), timeout=15000)
     assert window.view.reference.caption.text().startswith("sensor 0")

@@ -683,7 +683,7 @@ class MainWindow(QMainWindow):
             if self.job is None or self.job.name != name:
                 return
             records = list(response.iterations)
-            self.view.plot.extend((r.iteration, r.seconds, r.loss) for r in records)
+            self.view.plot.extend((r.iteration, r.seconds, r.loss, _errors(r)) for r in records)
             if records and (self.latest is None
                             or records[-1].iteration > self.latest.iteration):
                 self._iteration(records[-1], plot=False)
@@ -765,7 +765,7 @@ class MainWindow(QMainWindow):
 
     def _iteration(self, record: pb.IterationRecord, plot: bool = True) -> None:
         if plot:
-            self.view.plot.add(record.iteration, record.seconds, record.loss)
+            self.view.plot.add(record.iteration, record.seconds, record.loss, _errors(record))
         if self.latest is not None and record.iteration < self.latest.iteration:
             return
         self.latest = record
@@ -1108,6 +1108,11 @@ class MainWindow(QMainWindow):
             watcher.stop()
         self.connection.close()
         self.tasks.shutdown()
+
+
+def _errors(record: pb.IterationRecord) -> dict[str, float]:
+    """Each parameter's relative error against the job's ground truth (none without it)."""
+    return {e.key: e.relative for e in record.errors}
 
 
 def inherited(spec: pb.JobSpec) -> list[str]:

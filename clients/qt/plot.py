@@ -1,4 +1,5 @@
-"""The loss against optimizing time, drawn with QPainter.
+"""The loss, and each parameter's relative error when the job has ground truth, against
+optimizing time, drawn with QPainter (what ``matopt job report`` plots, live).
 
 The thesis compared runs by error over *run time*, not over iterations (a dual-buffer step
 costs two renders), so the x axis is ``IterationRecord.seconds``. Losses fall over orders of
@@ -17,6 +18,9 @@ from PySide6.QtGui import QColor, QFont, QPainter, QPainterPath, QPaintEvent, QP
 from PySide6.QtWidgets import QSizePolicy, QWidget
 
 LINE = QColor(31, 119, 180)
+# Parameter-error curves (matplotlib's tab10, without the loss's blue and the best's red).
+ERRORS = [QColor(255, 127, 14), QColor(44, 160, 44), QColor(148, 103, 189),
+          QColor(140, 86, 75), QColor(227, 119, 194), QColor(188, 189, 34), QColor(23, 190, 207)]
 BEST = QColor(214, 39, 40)
 TARGET = QColor(120, 120, 120)
 GRID = QColor(228, 228, 228)
@@ -62,17 +66,26 @@ def tick_label(value: float) -> str:
     return f"{value:.3g}"
 
 
+def short_key(key: str) -> str:
+    """'shape_2.bsdf.base_color.value' -> 'base_color'."""
+    parts = [p for p in key.split(".") if p not in ("value", "data")]
+    return parts[-1] if parts else key
+
+
 class LossPlot(QWidget):
-    """Loss (y) against seconds (x), the best point marked, the min-error target dashed."""
+    """Loss (y) against seconds (x), the best point marked, the min-error target dashed; with
+    ground truth, each parameter's relative error as a thinner curve on the same log axis."""
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.points: dict[int, tuple[float, float]] = {}  # iteration -> (seconds, loss)
+        # parameter key -> iteration -> (seconds, relative error against the ground truth)
+        self.errors: dict[str, dict[int, tuple[float, float]]] = {}
         self.target: float | None = None
         # The daemon's best iteration when known: for dual_buffer it is the best mean over a
         # window of iterations, not the lowest single (noisy, possibly negative) estimate.
         self.best_iteration: int | None = None
-        self.title = "loss vs. optimizing time"
+        self.title = "loss (and parameter error) vs. optimizing time"
         self.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Expanding)
         self.setMinimumSize(260, 160)
 
@@ -83,6 +96,7 @@ class LossPlot(QWidget):
 
     def clear(self) -> None:
         self.points.clear()
+        self.errors.clear()
         self.best_iteration = None
         self.update()
 
@@ -90,16 +104,31 @@ class LossPlot(QWidget):
         self.best_iteration = iteration if iteration is not None and iteration >= 0 else None
         self.update()
 
-    def add(self, iteration: int, seconds: float, loss: float) -> None:
+    def add(self, iteration: int, seconds: float, loss: float,
+            errors: dict[str, float] | None = None) -> None:
         """Adds (or replaces) one iteration's point; the history and the live stream may
         both deliver the same iteration, which then counts once."""
-        self.points[iteration] = (seconds, loss)
+        self._put(iteration, seconds, loss, errors)
         self.update()
 
-    def extend(self, records: Iterable[tuple[int, float, float]]) -> None:
-        for iteration, seconds, loss in records:
-            self.points[iteration] = (seconds, loss)
+    def extend(self, records: Iterable[tuple[int, float, float, dict[str, float]]]) -> None:
+        for record in records:
+            self._put(*record)
         self.update()
+
+    def _put(self, iteration: int, seconds: float, loss: float,
+             errors: dict[str, float] | None = None) -> None:
+        self.points[iteration] = (seconds, loss)
+        for key, value in (errors or {}).items():
+            self.errors.setdefault(key, {})[iteration] = (seconds, value)
+
+    def error_points(self) -> dict[str, list[tuple[float, float]]]:
+        """Per parameter, (seconds, relative error) in iteration order, positive and finite
+        (a log axis cannot show an exact 0)."""
+        return {key: [series[i] for i in sorted(series)
+                      if math.isfinite(series[i][0]) and math.isfinite(series[i][1])
+                      and series[i][1] > 0]
+                for key, series in self.errors.items()}
 
     def set_target(self, value: float | None) -> None:
         self.target = value if value and value > 0 else None
@@ -145,8 +174,13 @@ class LossPlot(QWidget):
             return
 
         xs, ys = [p[0] for p in pts], [p[1] for p in pts]
+        curves = {k: c for k, c in self.error_points().items() if c}
         ys_range = ys + ([self.target] if self.target is not None else [])
         log_y = all(y > 0 for y in ys_range)
+        if log_y:  # errors share the loss's axis only when it is logarithmic
+            ys_range += [y for c in curves.values() for _, y in c]
+        else:
+            curves = {}
         x0, x1 = 0.0, max(max(xs), 1e-3)
         if log_y:
             y0, y1 = math.log10(min(ys_range)), math.log10(max(ys_range))
@@ -192,7 +226,7 @@ class LossPlot(QWidget):
         painter.drawText(QRectF(area.left(), area.bottom() + metrics.height() + 2, area.width(),
                                 metrics.height()),
                          Qt.AlignmentFlag.AlignHCenter,
-                         "seconds" + ("   (loss on a log scale)" if log_y else ""))
+                         "seconds" + ("   (y on a log scale)" if log_y else ""))
         painter.setPen(QPen(Qt.GlobalColor.gray, 1))
         painter.drawRect(area)
 
@@ -205,6 +239,12 @@ class LossPlot(QWidget):
         path = QPainterPath(to_screen(*pts[0]))
         for x, y in pts[1:]:
             path.lineTo(to_screen(x, y))
+        for n, (key, curve) in enumerate(curves.items()):
+            error_path = QPainterPath(to_screen(*curve[0]))
+            for x, y in curve[1:]:
+                error_path.lineTo(to_screen(x, y))
+            painter.setPen(QPen(ERRORS[n % len(ERRORS)], 1.0))
+            painter.drawPath(error_path)
         painter.setPen(QPen(LINE, 1.5))
         painter.drawPath(path)
         best = self.best() or pts[0]
@@ -217,3 +257,12 @@ class LossPlot(QWidget):
                                 metrics.height()),
                          Qt.AlignmentFlag.AlignRight,
                          f"best {best[1]:.3g} at {best[0]:.1f} s")
+        if curves:  # a legend: the loss, then each parameter's relative error
+            y = area.top() + 2
+            for n, (label, colour) in enumerate(
+                    [("loss", LINE)] + [(f"{short_key(k)} rel. error", ERRORS[i % len(ERRORS)])
+                                        for i, k in enumerate(curves)]):
+                painter.setPen(colour)
+                painter.drawText(QRectF(area.left() + 4, y + n * metrics.height(),
+                                        area.width() / 2, metrics.height()),
+                                 Qt.AlignmentFlag.AlignLeft, label)
