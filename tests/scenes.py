@@ -167,15 +167,22 @@ def glass_with_medium(res: int = 32, thin: bool = False) -> str:
             '<float name="ext_ior" value="1"/></bsdf>') if thin else (
         '<bsdf type="roughdielectric"><float name="alpha" value="0.1"/>'
         '<float name="int_ior" value="1.49"/><float name="ext_ior" value="1"/></bsdf>')
+    return medium_sphere(res, bsdf, "0.412, 0.824, 0.999", 0.4)
+
+
+def medium_sphere(res: int, bsdf: str, albedo: str | float, sigma_t: float,
+                  max_depth: int = 8, shape_id: str = "blob") -> str:
+    """A sphere with the given interface ``bsdf`` around a homogeneous medium, in the studio
+    (checkerboard behind, environment and area light), rendered with volpath."""
     return f"""<scene version="3.0.0">
-    <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
+    <integrator type="volpath"><integer name="max_depth" value="{max_depth}"/></integrator>
     {camera(res, "0, 0.5, 4")}
     {studio(0.5)}
-    <shape type="sphere" id="blob">
+    <shape type="sphere" id="{shape_id}">
         {bsdf}
         <medium type="homogeneous" name="interior">
-            <rgb name="albedo" value="0.412, 0.824, 0.999"/>
-            <float name="sigma_t" value="0.4"/>
+            <rgb name="albedo" value="{albedo}"/>
+            <float name="sigma_t" value="{sigma_t}"/>
         </medium>
     </shape>
 </scene>

@@ -18,7 +18,7 @@ import numpy as np
 
 from matopt.v1 import matopt_pb2 as pb
 
-from scenes import camera, create_scene, studio
+from scenes import camera, create_scene, medium_sphere, studio
 
 FINAL = (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED)
 
@@ -76,19 +76,7 @@ def principled_ball(roughness: float, res: int = 24) -> str:
 def medium_ball(sigma_t: float, albedo: float, max_depth: int = 16, res: int = 16) -> str:
     """A null-interface sphere of homogeneous medium against a checkerboard, lit by the
     environment: thin media show the checks through them, thick ones a glowing disc."""
-    return f"""<scene version="3.0.0">
-    <integrator type="volpath"><integer name="max_depth" value="{max_depth}"/></integrator>
-    {camera(res, "0, 0.5, 4")}
-    {studio(0.5)}
-    <shape type="sphere" id="cloud">
-        <bsdf type="null"/>
-        <medium type="homogeneous" name="interior">
-            <rgb name="albedo" value="{albedo}"/>
-            <float name="sigma_t" value="{sigma_t}"/>
-        </medium>
-    </shape>
-</scene>
-"""
+    return medium_sphere(res, '<bsdf type="null"/>', albedo, sigma_t, max_depth, "cloud")
 
 
 def lit_wall(radiance: float, reflectance: float, res: int = 16) -> str:
