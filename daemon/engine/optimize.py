@@ -253,7 +253,8 @@ class Optimization:
 
     def _read_theta(self) -> dict[str, np.ndarray]:
         """theta_i, before the first step changes it. Read after the loss, not before the
-        render: reading syncs, and the render has evaluated these values anyway."""
+        render: reading syncs, and by then the render has evaluated the values (a log
+        parameter's e^u is recomputed in the one launch that also counts the guards)."""
         if self._theta is None:
             self._theta = self.values()
         return self._theta
