@@ -142,14 +142,18 @@ def test_roughdielectric_with_homogeneous_medium(stubs, daemon, tmp_path):
 
     As in the thesis (eta's learning rate 0.003-0.01), the interface parameters get a smaller
     learning rate than the medium: with 0.03 for all four, alpha and eta wander while the
-    medium is still far off, and the joint problem drifts away (alpha to 0, eta to 1.17)."""
+    medium is still far off, and the joint problem drifts away (alpha to 0, eta to 1.17).
+
+    At 64 px: at 32 px alpha and eta trade off along a valley the image barely constrains, and
+    over ten seeds they landed anywhere in 0.08-0.13 and 1.46-1.53; at 64 px, 0.08-0.11 and
+    1.475-1.50."""
     truth = {"blob.bsdf.alpha.value": [0.1], "blob.bsdf.eta": [1.49],
              "blob.interior_medium.albedo.value.value": [0.412, 0.824, 0.999],
              "blob.interior_medium.sigma_t.value.value": [0.4]}
     starts = {"blob.bsdf.alpha.value": [0.3], "blob.bsdf.eta": [1.55],
               "blob.interior_medium.albedo.value.value": [0.5, 0.5, 0.5],
               "blob.interior_medium.sigma_t.value.value": [0.9]}
-    params, got, done = recover(stubs, {"glass.xml": glass_with_medium().encode()}, "glass.xml",
+    params, got, done = recover(stubs, {"glass.xml": glass_with_medium(64).encode()}, "glass.xml",
                                 starts, iterations=200, spp=16,
                                 learning_rates={"blob.bsdf.alpha.value": 0.01,
                                                 "blob.bsdf.eta": 0.01})
@@ -197,12 +201,14 @@ def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
     key = "box.interior_medium.albedo.data"
     params, got, done = recover(stubs, {"vol.xml": grid_volume().encode(),
                                         "albedo.vol": vol(truth)}, "vol.xml",
-                                {key: start}, iterations=200, spp=8)
+                                {key: start}, iterations=200, spp=8, reference_spp=1024)
     assert params[key].kind == pb.VOLUME_GRID and list(params[key].shape) == [4, 4, 4, 3]
     assert done.integrator == "prbvolpath"
     error = got[key] - truth.ravel()
-    # The 8 interior voxels are seen only through the others and converge slowly (0.108 after
-    # 300 iterations); the bound is on the RMSE over all 64 voxels and 3 channels.
+    # The 8 interior voxels are seen only through the others and converge slowly; the bound is
+    # on the RMSE over all 64 voxels and 3 channels. Noise in the reference shifts the optimum
+    # the weakly seen voxels settle on: over six seeds the RMSE ended at 0.10-0.13 against a
+    # 256-spp reference and at 0.07-0.10 against this one.
     start_rmse = np.sqrt(np.mean((0.6 - truth) ** 2))
     assert start_rmse > 0.18
     assert np.sqrt(np.mean(error ** 2)) < 0.125

@@ -59,7 +59,8 @@ def test_principled_object_recovers_color_roughness_transmission_and_eta(stubs):
         assert truth[key] == pytest.approx(value, abs=1e-6)
     ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=512)).images[0]
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=200, min_error=0,  # the defaults: 16 spp, lr 0.1 cosine
+        # the defaults: 16 spp, cosine decay, learning rate 0.1 (eta 0.01)
+        scene=scene.name, iterations=200, min_error=0,
         references=[pb.Reference(blob=ref.exr_blob, filename="ref.exr")],
         parameters=[pb.ParameterSpec(key=k, initial_value=start)
                     for k, (_, start, _) in PRINCIPLED_TRUTH.items()])))

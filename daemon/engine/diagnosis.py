@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-ROUGHNESS_FLOOR = 0.03  # principled: alpha = max(0.001, roughness^2) hides roughness below this
+from .parameters import ROUGHNESS_MIN
 
 
 def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
@@ -17,15 +17,17 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         v = values.get(key)
         if v is None:
             continue
+        if key.endswith("roughness.value") and float(np.max(v)) <= ROUGHNESS_MIN:
+            notes.append(f"{key}: ended at {ROUGHNESS_MIN:g}, the principled BSDF's alpha floor "
+                         "(0.001): a smoother surface would look the same, so the truth may "
+                         "be anywhere below; compare alpha, not roughness")
+            continue
         for bound, name in ((s.lo, "min"), (s.hi, "max")):
             at = int(np.sum(np.isclose(v, bound, rtol=0, atol=1e-6))) if np.isfinite(bound) else 0
             if at:
                 notes.append(f"{key}: {at} component(s) ended at the {name} {bound:g}; the "
                              "truth may lie outside the range, or these images do not "
                              "constrain it")
-        if key.endswith("roughness.value") and float(np.max(v)) < ROUGHNESS_FLOOR:
-            notes.append(f"{key}: below ~{ROUGHNESS_FLOOR} the principled BSDF's alpha floor "
-                         "(0.001) makes roughness invisible; compare alpha, not roughness")
     for key, path in (trajectories or {}).items():
         s = settings.get(key)
         moving = still_moving(path, log=s is not None and s.log)

@@ -32,11 +32,25 @@ INF = math.inf
 # the thesis's Table 4 case 0.1 left sigma_t 31% off where 0.03 came within 4%.
 DEFAULT_LEARNING_RATE = 0.1
 CAUTIOUS_LEARNING_RATE = 0.03
+# A dielectric's eta gets 0.01, the thesis's own choice (0.003-0.01): reflection (Fresnel) and
+# the refracted image change far faster with eta than the image with a reflectance, and eta
+# trades off against base_color and spec_trans. On the thesis's Table 2 case (roughness 0.01),
+# eta at 0.1 wandered to 2.3 and dragged roughness up to 0.8 to compensate, and at 0.03 one
+# seed of two diverged; at 0.01 both ended within 1% on base_color, spec_trans and eta.
+ETA_LEARNING_RATE = 0.01
 _MEDIUM = {"albedo", "sigma_t", "sigma_a", "sigma_s", "density"}
 SMALL = 64                     # parameters up to this many components travel inline
 
 # An eta of exactly 1 makes a dielectric interface vanish (no gradient, divisions by eta - 1).
 ETA_MIN = 1.001
+# The principled BSDF uses alpha = max(0.001, roughness^2): below ~0.0316 its specular lobe
+# stops changing and that lobe's gradient is gone, so a roughness that noise or a transient
+# pushed in is steered only by the diffuse lobe: on the principled sphere of
+# tests/test_recovery.py (truth 0.3) it sank to 0 in two seeds of four and stayed there while
+# base_color and spec_trans compensated. Just above the clamp the surface looks the same and
+# the gradient is alive. (A microfacet alpha is clamped at 1e-4 too, but only a near-specular
+# truth leads there, and lifting that bound let noise kick alpha 0.001 up to 0.03-0.37.)
+ROUGHNESS_MIN = 0.032  # 0.032^2 = 0.001024
 
 _UNIT = {"reflectance", "base_color", "albedo", "diffuse_reflectance", "specular_reflectance",
          "specular_transmittance", "transmittance", "roughness", "alpha", "alpha_u", "alpha_v",
@@ -62,12 +76,20 @@ def property_name(key: str) -> str:
     return parts[-1] if parts else key
 
 
+def dielectric_eta(key: str) -> bool:
+    """`obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's complex
+    IOR is a texture (`obj.eta.value`) and only needs to be non-negative."""
+    return key == "eta" or key.endswith(".eta")
+
+
 def legal_range(key: str) -> tuple[float, float]:
     name = property_name(key)
+    if dielectric_eta(key):
+        return ETA_MIN, 4.0
     if name == "eta":
-        # `obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's
-        # complex IOR is a texture (`obj.eta.value`) and only needs to be non-negative.
-        return (0.0, INF) if key.endswith(".eta.value") else (ETA_MIN, 4.0)
+        return 0.0, INF
+    if name == "roughness":
+        return ROUGHNESS_MIN, 1.0
     if name in _UNIT:
         return 0.0, 1.0
     if name in _NON_NEGATIVE:
@@ -134,6 +156,8 @@ def default_learning_rate(info: Info) -> float:
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
     small = info.kind in (pb.SCALAR, pb.RGB)
     medium = property_name(info.key) in _MEDIUM
+    if dielectric_eta(info.key):
+        return ETA_LEARNING_RATE
     return DEFAULT_LEARNING_RATE if bounded and small and not medium else CAUTIOUS_LEARNING_RATE
 
 
