@@ -153,11 +153,11 @@ def assign(template, values: np.ndarray):
 
 
 def default_learning_rate(info: Info) -> float:
+    if dielectric_eta(info.key):
+        return ETA_LEARNING_RATE
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
     small = info.kind in (pb.SCALAR, pb.RGB)
     medium = property_name(info.key) in _MEDIUM
-    if dielectric_eta(info.key):
-        return ETA_LEARNING_RATE
     return DEFAULT_LEARNING_RATE if bounded and small and not medium else CAUTIOUS_LEARNING_RATE
 
 
