@@ -92,6 +92,23 @@ def cornell_reference(window: MainWindow, stubs, path: Path) -> Path:
     return download(stubs, image.png_blob, path)
 
 
+def test_a_late_control_reply_does_not_undo_a_newer_state(window):
+    """ResumeJob answers QUEUED; when the worker runs the job before that reply reaches the
+    GUI thread, the stream has already shown RUNNING, and the window keeps RUNNING."""
+    running = pb.Job(name="jobs/x", state=pb.RUNNING)
+    running.update_time.FromNanoseconds(2_000)
+    queued = pb.Job(name="jobs/x", state=pb.QUEUED)
+    queued.update_time.FromNanoseconds(1_000)
+    window._job_changed(running)
+    window._job_changed(queued)
+    assert window.job.state == pb.RUNNING
+    assert window.view.resume_button.isEnabled() is False
+    paused = pb.Job(name="jobs/x", state=pb.PAUSED)
+    paused.update_time.FromNanoseconds(3_000)
+    window._job_changed(paused)
+    assert window.job.state == pb.PAUSED and window.view.resume_button.isEnabled()
+
+
 def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs, tmp_path,
                                                             monkeypatch):
     scene_dir = tmp_path / "scene"

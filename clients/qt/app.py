@@ -738,6 +738,12 @@ class MainWindow(QMainWindow):
 
     def _job_changed(self, job: pb.Job) -> None:
         previous = self.job
+        if (previous is not None and previous.name == job.name
+                and job.update_time.ToNanoseconds() < previous.update_time.ToNanoseconds()):
+            # A Pause/Resume reply that the watch stream overtook (the worker acted on the
+            # request before the reply reached this thread): showing it would undo the newer
+            # state, and no later state event would come to correct it.
+            return
         self.job = job
         self.jobs.update_job(job)
         self.view.show_job(job)
