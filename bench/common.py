@@ -27,9 +27,9 @@ sys.path.insert(0, str(ROOT / "tests"))  # tests/scenes.py: the procedural scene
 
 from matopt import client as mc  # noqa: E402
 from matopt.cli import report  # noqa: E402
-from matopt.v1 import matopt_pb2 as pb  # noqa: E402
+from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
-CORNELL_XML = ROOT / "daemon" / "engine" / "cornell_box.xml"
+CORNELL_XML = ROOT / "daemon" / "matoptd" / "engine" / "cornell_box.xml"
 WALLS = ["red.reflectance.value", "green.reflectance.value"]
 GREY = [0.5, 0.5, 0.5]
 

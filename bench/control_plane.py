@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import common
 from common import Result, Settings, Target
 from matopt import client as mc
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 RES, SPP = 128, 4
 RATE = 200.0      # GetJob requests per second, all pollers together

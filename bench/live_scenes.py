@@ -17,7 +17,7 @@ import time
 
 import common
 from common import Result, Settings, Target
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED
 
 OTHERS = 4  # matoptd's scheduler.SCENE_CACHE

@@ -15,7 +15,7 @@ import time
 import common
 from common import Result, Settings, Target
 from matopt.cli import report
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED
 
 RES, ITERATIONS, SPP = 64, 10, 4

@@ -38,7 +38,7 @@ import plain
 from common import Result, Settings, Target
 from matopt import client as mc
 from matopt.cli import report
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED
 
 REF_SPP, PLAIN_SPP = 256, 8

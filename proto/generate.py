@@ -4,9 +4,11 @@ Run by the build (setup.py) and by hand after editing a .proto:
 
     python proto/generate.py
 
-The stubs land in ``clients/v1/`` (the import package ``matopt.v1``, shipped with the base
-distribution so that both the daemon and the clients use them), next to a copy of the .proto
-files, which are the public contract for clients in other languages.
+The stubs land in ``proto/matopt_api/v1/`` (the import package ``matopt_api.v1``, the contract
+that both the daemon and the clients import, shipped with the base distribution), next to a
+copy of the .proto files, which are the public contract for clients in other languages. The
+.proto keeps its canonical path ``matopt/v1/matopt.proto`` (package ``matopt.v1``), so the
+one import protoc writes for that path is pointed at ``matopt_api.v1``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PROTO_ROOT = ROOT / "proto"
 PACKAGE = Path("matopt") / "v1"
-OUT = ROOT / "clients" / "v1"
+OUT = ROOT / "proto" / "matopt_api" / "v1"
 
 
 def generate(out: Path = OUT) -> list[Path]:
@@ -44,7 +46,8 @@ def generate(out: Path = OUT) -> list[Path]:
         out.mkdir(parents=True, exist_ok=True)
         written = []
         for f in sorted((Path(tmp) / PACKAGE).iterdir()):
-            shutil.copy2(f, out / f.name)
+            text = f.read_text().replace("from matopt.v1 import", "from matopt_api.v1 import")
+            (out / f.name).write_text(text)
             written.append(out / f.name)
     for p in protos:
         shutil.copy2(p, out / p.name)

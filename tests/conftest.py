@@ -16,8 +16,8 @@ from pathlib import Path
 import grpc
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
-from matopt.v1 import matopt_pb2_grpc as rpc
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 def studio(environment: float) -> str:
     """Light and backdrop of the translucent-object scenes: an environment, an area light

@@ -6,7 +6,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
 from scenes import MESH_SCENE, QUAD_OBJ, create_scene, upload

@@ -24,7 +24,7 @@ def test_cli_help_without_mitsuba_or_drjit():
 
 
 def test_client_library_and_stubs_import_without_mitsuba_or_drjit():
-    out = run("import matopt.client, matopt.export, matopt.v1.matopt_pb2_grpc\n"
+    out = run("import matopt.client, matopt.export, matopt_api.v1.matopt_pb2_grpc\n"
               "assert 'mitsuba' not in [m for m in sys.modules if sys.modules[m] is not None]\n")
     assert out.returncode == 0, out.stderr
 

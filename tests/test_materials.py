@@ -12,7 +12,7 @@ import io
 import numpy as np
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
 from scenes import (QUAD_CORNERS, QUAD_IN_FRONT, colored_mesh, create_scene,

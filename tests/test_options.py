@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
 from scenes import create_scene

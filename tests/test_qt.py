@@ -33,7 +33,7 @@ from matopt.qt import app as qt_app  # noqa: E402
 from matopt.qt.app import MainWindow  # noqa: E402
 from matopt.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
 from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
-from matopt.v1 import matopt_pb2 as pb  # noqa: E402
+from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 from conftest import TOKENS, Daemon  # noqa: E402
 from scenes import PRINCIPLED  # noqa: E402

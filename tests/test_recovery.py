@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
 from scenes import PRINCIPLED, create_scene

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
 

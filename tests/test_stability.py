@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 import stiff
 from conftest import wait_state

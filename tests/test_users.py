@@ -11,7 +11,7 @@ from pathlib import Path
 import grpc
 import pytest
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import TOKENS, Daemon, Stubs, wait_state
 

@@ -39,7 +39,7 @@ from matopt.qt.jobs_list import JobsList
 from matopt.qt.params_table import ParamsTable
 from matopt.qt.references import ReferenceList
 from matopt.qt.worker import CALL_TIMEOUT_S, JobWatcher, Tasks
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 log = logging.getLogger(__name__)
 

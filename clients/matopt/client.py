@@ -1,6 +1,6 @@
 """The client library shared by the CLI, the Qt app and scripts: one gRPC connection to matoptd.
 
-Everything here speaks the v1 API only (``matopt.v1``); nothing imports mitsuba, drjit or the
+Everything here speaks the v1 API only (``matopt_api.v1``); nothing imports mitsuba, drjit or the
 daemon package, so a client machine needs no renderer. Plain functions take a :class:`Client`
 instead of hiding state in objects, so a caller can use the stubs directly for anything this
 module does not wrap.
@@ -19,9 +19,9 @@ from typing import Callable, Iterable, Iterator, NamedTuple, Sequence
 
 import grpc
 
-from matopt import bundle
-from matopt.v1 import matopt_pb2 as pb
-from matopt.v1 import matopt_pb2_grpc as rpc
+from matopt_api import bundle
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 CHUNK_BYTES = 1024 * 1024  # the API's chunk limit for blob streams

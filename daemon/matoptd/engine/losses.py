@@ -15,7 +15,7 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 Tensor = "mi.TensorXf"  # annotations only: the class exists once a variant is set
 EPSILON = 1e-3  # keeps brightness normalization finite on black images

@@ -16,7 +16,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from .errors import InvalidArgument, NotFound
 

@@ -17,7 +17,7 @@ from PySide6.QtCore import Qt
 from matopt import client as mc
 from matopt.qt.images import ImagePane
 from matopt.qt.plot import LossPlot
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 RUNNING_STATES = (pb.QUEUED, pb.RUNNING)
 

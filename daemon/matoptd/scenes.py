@@ -2,7 +2,7 @@
 
 What happens here, all before the engine sees the scene:
 - the bundle's files are laid out under the scene's directory, and every file the XML refers
-  to must be in the bundle and inside it (``matopt.bundle`` has the path rules);
+  to must be in the bundle and inside it (``matopt_api.bundle`` has the path rules);
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
@@ -21,8 +21,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from matopt import bundle
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api import bundle
+from matopt_api.v1 import matopt_pb2 as pb
 
 from .errors import FailedPrecondition, InvalidArgument
 from .store import Store

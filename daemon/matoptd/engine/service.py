@@ -16,7 +16,7 @@ from typing import Callable
 import mitsuba as mi
 import numpy as np
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from ..errors import InvalidArgument
 from . import diagnosis, images, parameters, scene as scenes, scene_export, variant

@@ -22,7 +22,7 @@ from matopt.cli.scene import create_scene
 from matopt.cli.session import Settings
 from matopt.export import export_job
 from matopt.local_daemon import LocalDaemon
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 KEYS = ("red.reflectance.value", "green.reflectance.value", "white.reflectance.value")
 START = [0.5, 0.5, 0.5]  # grey: far from every wall's true colour

@@ -14,7 +14,7 @@ import grpc
 
 from matopt import client as mc
 from matopt.cli.output import best, note, number
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 BAR_WIDTH = 24
 

@@ -17,9 +17,9 @@ import uuid
 
 import grpc
 
-from matopt import __version__
-from matopt.v1 import matopt_pb2 as pb
-from matopt.v1 import matopt_pb2_grpc as rpc
+from matoptd import __version__
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 from . import scenes
 from .auth import Authenticator

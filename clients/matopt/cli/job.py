@@ -16,7 +16,7 @@ from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, V
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
 from matopt.export import WHICH, export_job
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 LOSSES = {"mse": pb.MSE, "dual_buffer": pb.DUAL_BUFFER, "mae": pb.MAE,
           "brightness_independent_mse": pb.BRIGHTNESS_INDEPENDENT_MSE,

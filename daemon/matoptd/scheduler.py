@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 from google.protobuf.timestamp_pb2 import Timestamp
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 from . import scenes
 from .errors import FailedPrecondition, UserError

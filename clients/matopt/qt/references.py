@@ -21,7 +21,7 @@ from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QFileDialog, QHBoxLayout, QListWidget, QListWidgetItem,
                                QPushButton, QVBoxLayout, QWidget)
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 IMAGE_FILTER = "Images (*.png *.jpg *.jpeg *.exr);;All files (*)"
 

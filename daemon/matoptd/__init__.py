@@ -5,6 +5,6 @@ runs engine work, jobs taking turns) -> ``engine`` (the only code that imports m
 drjit). ``store`` keeps everything that must survive a restart.
 """
 
-from matopt import __version__
+from matopt_api import __version__
 
 __all__ = ["__version__"]

@@ -13,7 +13,7 @@ from PySide6.QtGui import QDoubleValidator
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QLineEdit, QSpinBox,
                                QWidget)
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 LOSSES = {name.lower(): value for name, value in pb.Loss.items() if value != pb.LOSS_UNSPECIFIED}
 SCHEDULES = {"cosine": pb.COSINE, "constant": pb.CONSTANT}

@@ -28,7 +28,7 @@ from matopt import client as mc
 from matopt.cli.output import emit_json, note
 from matopt.cli.params import JOB
 from matopt.cli.session import connected
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 PLOT_HINT = "plots need matplotlib: install matopt[plot] (pip install 'matopt[plot]')"
 CSV_NAME = "report.csv"

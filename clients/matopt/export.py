@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from matopt.client import Client, download_blob, resource_name, short_float, short_floats
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 WHICH = {"best": pb.BEST, "last": pb.LAST}
 

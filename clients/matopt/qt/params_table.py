@@ -23,7 +23,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLab
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from matopt import client as mc
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 # "Current" sits next to "Value" so that start and current values read side by side.
 COLUMNS = ["Opt.", "Key", "Kind", "Value", "Current", "Learning rate", "Min", "Max"]

@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 INF = math.inf
 # Adam's default learning rates. A scalar or RGB parameter with a finite range, or optimized in

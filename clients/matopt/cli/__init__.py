@@ -18,9 +18,9 @@ import click  # noqa: E402
 import grpc  # noqa: E402
 
 from matopt import __version__
-from matopt.bundle import BundleError
+from matopt_api.bundle import BundleError
 from matopt.client import ClientError, error_message
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 from matopt.cli.output import emit_json, fields, json_option
 from matopt.cli.session import Group, Settings, connected, root_options
 

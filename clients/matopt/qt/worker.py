@@ -18,7 +18,7 @@ import grpc
 from PySide6.QtCore import QObject, QRunnable, QThread, QThreadPool, Qt, Signal, Slot
 
 from matopt import client as mc
-from matopt.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2 as pb
 
 log = logging.getLogger(__name__)
 
