@@ -1,8 +1,9 @@
 """matoptd: the daemon that owns the GPU and Dr.Jit and serves the matopt v1 gRPC API.
 
-Layers: ``server`` (gRPC handlers, no Dr.Jit) -> ``scheduler`` (the one worker thread that
-runs engine work, jobs taking turns) -> ``engine`` (the only code that imports mitsuba and
-drjit). ``store`` keeps everything that must survive a restart.
+This process (``main``, ``server``: the gRPC handlers; ``store``: what survives a restart;
+``scheduler``: who runs what next; ``runner``: carrying it out) never imports Mitsuba or Dr.Jit.
+Renderer worker processes (``worker``, supervised by ``workers``) run the ``engine``, the only
+code that does, behind the one interface ``engine_api``.
 """
 
 from matopt_api import __version__

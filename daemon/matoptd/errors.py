@@ -24,3 +24,18 @@ class FailedPrecondition(UserError):
 
 class AlreadyExists(UserError):
     code = grpc.StatusCode.ALREADY_EXISTS
+
+
+class ResourceExhausted(UserError):
+    code = grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+class Unavailable(UserError):
+    """The service cannot do this now (shutting down, no renderer running); try again."""
+    code = grpc.StatusCode.UNAVAILABLE
+
+
+class Internal(UserError):
+    """Not the caller's fault, but with a message that says what happened (a renderer process
+    that died while serving the request), rather than a traceback's last line."""
+    code = grpc.StatusCode.INTERNAL

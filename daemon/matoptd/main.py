@@ -1,10 +1,15 @@
 """``matoptd``: start the daemon.
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
+            [--devices 0,1 | --workers N] [--worker-memory SIZE] [--watchdog SECONDS]
             [--tls-cert FILE --tls-key FILE] [--port-file FILE]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY).
+MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_WORKER_MEMORY,
+MATOPTD_WATCHDOG, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY).
+
+This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
+worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
 """
 
 from __future__ import annotations
@@ -22,12 +27,12 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from . import __version__
+from . import __version__, devices
 from .auth import Authenticator, load_tokens
-from .engine.variant import configure_environment
-from .scheduler import Scheduler
+from .runner import Runner
 from .server import Service, add_services
 from .store import Store
+from .workers import Worker
 
 log = logging.getLogger("matoptd")
 MAX_MESSAGE = 64 << 20
@@ -47,8 +52,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="file of 'TOKEN USER' lines; without it only a local user, on "
                         "loopback, is served")
     p.add_argument("--variant", default=env("MATOPTD_VARIANT"),
-                   help="Mitsuba variant (default: cuda_ad_rgb if a CUDA device works, else "
-                        "llvm_ad_rgb)")
+                   help="Mitsuba variant (default: cuda_ad_rgb on each CUDA device that works, "
+                        "else llvm_ad_rgb)")
+    p.add_argument("--devices", default=env("MATOPTD_DEVICES"),
+                   help="CUDA devices to run workers on, e.g. 0,1 (default: every one that "
+                        "works); a device named twice gets two workers")
+    p.add_argument("--workers", type=int, default=env("MATOPTD_WORKERS"),
+                   help="run N CPU workers instead, the cores split between them")
+    p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
+                   help="resident memory a worker may use before it is stopped and its job "
+                        "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
+                        "among the workers)")
+    p.add_argument("--watchdog", type=float, default=float(env("MATOPTD_WATCHDOG", "120")),
+                   help="seconds without an answer after which a worker counts as hung and "
+                        "is restarted; an iteration gets 20x its job's usual time if that is "
+                        "more, a load or first iteration 5x this (default %(default)s)")
+    p.add_argument("--slice", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--tls-cert", type=Path, default=env("MATOPTD_TLS_CERT"))
     p.add_argument("--tls-key", type=Path, default=env("MATOPTD_TLS_KEY"))
     p.add_argument("--port-file", type=Path,
@@ -85,18 +104,12 @@ async def serve(args: argparse.Namespace) -> None:
         raise SystemExit("matoptd: --tls-cert and --tls-key go together")
 
     args.data_dir.mkdir(parents=True, exist_ok=True)
-    # Dr.Jit reads DRJIT_CACHE_DIR and DRJIT_LIBLLVM_PATH once, when it is first imported.
-    configure_environment(args.data_dir)
     store = Store(args.data_dir)
-    scheduler = Scheduler(store, args.data_dir, args.variant)
-    try:
-        await asyncio.to_thread(scheduler.start)
-    except Exception as exc:
-        raise SystemExit(f"matoptd: the rendering engine did not start: {exc}")
+    runner = await asyncio.to_thread(start_workers, args, store)
 
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                                       ("grpc.max_send_message_length", MAX_MESSAGE)])
-    names = add_services(server, Service(store, scheduler, Authenticator(tokens)))
+    names = add_services(server, Service(store, runner, Authenticator(tokens)))
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
@@ -115,8 +128,9 @@ async def serve(args: argparse.Namespace) -> None:
         tmp = args.port_file.with_suffix(".tmp")
         tmp.write_text(str(bound))
         tmp.replace(args.port_file)
-    log.info("matoptd %s serving on %s:%d (%s, %s, %s)", __version__, host, bound,
-             scheduler.variant, "TLS" if args.tls_cert else "plaintext",
+    log.info("matoptd %s serving on %s:%d (%d worker(s), %s, %s)", __version__, host, bound,
+             sum(w.state == "idle" for w in runner.workers.values()),
+             "TLS" if args.tls_cert else "plaintext",
              f"{len(set(tokens.values()))} user(s)" if tokens else "local user only")
 
     stop = asyncio.Event()
@@ -127,9 +141,43 @@ async def serve(args: argparse.Namespace) -> None:
     log.info("shutting down: finishing the current iteration")
     await health_servicer.enter_graceful_shutdown()
     await server.stop(grace=5)
-    await asyncio.to_thread(scheduler.stop)
+    await asyncio.to_thread(runner.stop)
     store.close()
     log.info("stopped")
+
+
+def start_workers(args: argparse.Namespace, store: Store) -> Runner:
+    """The workers the machine allows, started and ready. CUDA devices that fail to start are
+    left out; when none works (and none was named), one CPU worker takes their place."""
+    chosen = [d.strip() for d in args.devices.split(",")] if args.devices else None
+    if args.workers is not None and args.workers < 1:
+        raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
+    places = devices.placements(chosen, args.workers, args.variant)
+    runner, failures = _run(args, store, places)
+    if not runner.ready and places[0].cuda is not None and chosen is None \
+            and args.variant is None:
+        log.warning("no CUDA device works (%s); using the CPU", "; ".join(failures))
+        runner, failures = _run(args, store, devices.placements(None, 1, "llvm_ad_rgb"))
+    if not runner.ready:
+        raise SystemExit("matoptd: no renderer worker started: " + "; ".join(failures))
+    for failure in failures:
+        log.warning("left out: %s", failure)
+    return runner
+
+
+def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
+         ) -> tuple[Runner, list[str]]:
+    try:
+        limit = (devices.parse_size(args.worker_memory) if args.worker_memory else
+                 int(0.8 * devices.total_memory() / len(places)))
+    except ValueError as exc:
+        raise SystemExit(f"matoptd: --worker-memory: {exc}")
+    workers = [Worker(f"workers/{i}", p,
+                      args.variant or ("cuda_ad_rgb" if p.cuda is not None else "llvm_ad_rgb"),
+                      args.data_dir, limit, store.read_blob)
+               for i, p in enumerate(places)]
+    runner = Runner(store, workers, args.watchdog, args.slice)
+    return runner, runner.start()
 
 
 def main(argv: list[str] | None = None) -> None:

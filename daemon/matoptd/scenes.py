@@ -1,8 +1,8 @@
-"""Turning an uploaded bundle into a directory Mitsuba can load, without importing Mitsuba.
+"""Turning an uploaded bundle into what a worker loads, without importing Mitsuba.
 
-What happens here, all before the engine sees the scene:
-- the bundle's files are laid out under the scene's directory, and every file the XML refers
-  to must be in the bundle and inside it (``matopt_api.bundle`` has the path rules);
+What happens here, all before a worker sees the scene:
+- every file the XML refers to must be in the bundle and inside it (``matopt_api.bundle`` has
+  the path rules), and every file of the bundle must have been uploaded;
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
@@ -11,12 +11,13 @@ What happens here, all before the engine sees the scene:
   (8-bit ones carry no gradient); removed integrators (``prb_reparam``) become their successors;
 - ``<default>`` overrides are applied only where the XML declares the default; others are
   reported as warnings, never required.
+The result is a prepared copy of the main XML (``.matopt-scene.xml``, a name no bundle file can
+take) stored as a blob beside the bundle's: a worker gets the scene as digests.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
+import posixpath
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +29,8 @@ from .errors import FailedPrecondition, InvalidArgument
 from .store import Store
 
 CORNELL_BOX = Path(__file__).parent / "engine" / "cornell_box.xml"
-LOADABLE_NAME = ".matopt-scene.xml"
+CORNELL_NAME = "cornell_box.xml"
+LOADABLE_NAME = bundle.RESERVED_PREFIX + "scene.xml"
 
 # Objects whose keys Mitsuba derives from their id when they sit directly under <scene>.
 _NAMED_TAGS = ("shape", "bsdf", "emitter", "sensor", "medium", "texture", "volume", "phase")
@@ -36,19 +38,15 @@ _NAMED_TAGS = ("shape", "bsdf", "emitter", "sensor", "medium", "texture", "volum
 
 @dataclass
 class PreparedScene:
-    directory: Path
-    loadable: Path                      # the XML to hand to Mitsuba (ids added)
+    xml: bytes                          # the copy of the main XML to hand to Mitsuba
     overrides: dict[str, str]           # the ones the XML declares
     warnings: list[str] = field(default_factory=list)
 
 
-def materialize(store: Store, directory: Path, main_file: str,
-                files: list[pb.BundleFile], overrides: dict[str, str]) -> str:
-    """Lays the bundle out under ``directory``; returns the main XML's bundle path."""
-    if not main_file and not files:
-        directory.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(CORNELL_BOX, directory / "cornell_box.xml")
-        return "cornell_box.xml"
+def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
+                 overrides: dict[str, str]) -> tuple[str, dict[str, str]]:
+    """The main XML's bundle path and every bundle file's digest, once the bundle is complete
+    and stays inside itself."""
     if not main_file:
         raise InvalidArgument("main_file is empty: name the bundle's main scene XML")
     try:
@@ -78,23 +76,18 @@ def materialize(store: Store, directory: Path, main_file: str,
                                           f"the bundle (expected at '{ref.path}')")
     except bundle.BundleError as exc:
         raise InvalidArgument(str(exc)) from None
-
-    for path, sha in paths.items():
-        dest = directory / path
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        src = store.blob_file(sha)
-        try:
-            os.link(src, dest)
-        except OSError:
-            shutil.copyfile(src, dest)
-    return main
+    return main, paths
 
 
-def prepare(directory: Path, main: str, overrides: dict[str, str]) -> PreparedScene:
-    """Writes the loadable copy of the main XML (stable ids) and sorts out the overrides."""
-    source = directory / main
+def loadable_path(main: str) -> str:
+    """Where the prepared XML sits: beside the main XML, so relative file names resolve."""
+    return posixpath.join(posixpath.dirname(main), LOADABLE_NAME)
+
+
+def prepare(text: bytes, main: str, overrides: dict[str, str]) -> PreparedScene:
+    """The loadable copy of the main XML (stable ids, ...) and the overrides that apply."""
     try:
-        root = bundle.parse_xml(source.read_bytes(), main)
+        root = bundle.parse_xml(text, main)
     except bundle.BundleError as exc:
         raise InvalidArgument(str(exc)) from None
     if root.tag != "scene":
@@ -108,10 +101,8 @@ def prepare(directory: Path, main: str, overrides: dict[str, str]) -> PreparedSc
     assign_ids(root)
     forward_slashes(root)
     float_textures(root)
-    loadable = source.parent / LOADABLE_NAME
-    ET.ElementTree(root).write(loadable, encoding="utf-8", xml_declaration=True)
-    return PreparedScene(directory, loadable,
-                         {k: v for k, v in overrides.items() if k in declared}, warnings)
+    xml = ET.tostring(root, encoding="utf-8", xml_declaration=True)
+    return PreparedScene(xml, {k: v for k, v in overrides.items() if k in declared}, warnings)
 
 
 # Removed in Mitsuba 3.5; their successors optimize the same visibility-dependent parameters.

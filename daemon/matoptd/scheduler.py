@@ -1,470 +1,323 @@
-"""The worker thread that owns Dr.Jit, and the jobs taking turns on it.
+"""Which worker does what next: a state machine without Mitsuba, threads or I/O.
 
-Mitsuba 3.9 breaks when AD runs in several threads, so exactly one thread calls the engine.
-Between two iterations it first runs queued engine tasks (scene loads, renders, reference
-checks: short, and a user is waiting on them), then gives one iteration to the next runnable
-job in round-robin order, so a long job never starves another user's. Pause, resume and cancel
-are requests the worker honours at the next iteration boundary.
+The runner (``runner.py``) tells it what happens (jobs added, paused, resumed, cancelled;
+workers ready or lost; actions done) and asks it, whenever a worker is free, what that worker
+does next. Tests drive it directly with a fake clock and no processes.
 
-Job state lives in the store; this module is what changes it. A lock serializes those changes
-between the gRPC handlers (which only flip flags and states of jobs that are not loaded) and
-the worker.
+Decisions, in order, for a free worker:
+1. a pause or cancel requested on a job loaded on it (acted on at an iteration boundary);
+2. a scene task (load, render, reference check): short, and a user is waiting on each;
+3. the job whose slice is running, until ``slice_seconds`` have passed while others wait;
+4. else the next job by fair share *per user*: the user with the least device time so far
+   (a user with ten jobs gets no more than a user with one), then that user's least-served
+   job. A user who was idle comes back at the least busy active user's account, not with
+   credit saved up. A job loaded elsewhere stays there (its state is never shipped per
+   iteration); a job not loaded anywhere goes to the least loaded free worker.
+
+A worker holds at most ``max_resident`` loaded jobs. Switching jobs evicts one (checkpoint and
+release, done by the runner) before another loads: every scene a process holds makes every
+job's kernels bigger, since Mitsuba dispatches a BSDF's or emitter's virtual call over every
+live instance (bench/switching.py measures it). Switches are what slices pay for, so a slice
+is long against a switch and short against a user's patience.
 """
 
 from __future__ import annotations
 
-import asyncio
 import collections
-import logging
-import threading
+import math
 import time
-import traceback
-from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
-from google.protobuf.timestamp_pb2 import Timestamp
-
-from matopt_api.v1 import matopt_pb2 as pb
-
-from . import scenes
-from .errors import FailedPrecondition, UserError
-from .store import Store
-
-log = logging.getLogger("matoptd.scheduler")
-
-FINAL = (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED)
-CHECKPOINT_EVERY = 10  # iterations; also on pause and shutdown
-SCENE_CACHE = 4        # loaded scenes kept for renders
+SLICE_SECONDS = 2.0   # a job keeps its worker this long while others wait
+STEP_SECONDS = 0.25   # one step call: a pause or cancel waits at most this long
+MAX_STEP = 1000       # iterations in one step call
+EMA = 0.3             # weight of the newest per-iteration time
 
 
 @dataclass
-class Run:
-    """A job whose optimization is loaded on the worker."""
+class Action:
+    """What a worker does next. ``kind``: "task", "load", "step" (``n`` iterations), "evict"
+    (checkpoint, release; the job waits for its next slice), "park" (checkpoint, release;
+    the job is paused), "cancel" (results, release)."""
 
-    opt: Any  # engine.optimize.Optimization
-    shapes: dict[str, list[int]]
-    kinds: dict[str, int]
-    control: str = ""  # "", "pause" or "cancel"
+    kind: str
+    worker: str
+    job: str = ""
+    n: int = 0
+    task: Any = None
+    began: float = 0.0
 
 
 @dataclass
-class _Watchers:
-    queues: list[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = field(default_factory=list)
+class Job:
+    name: str
+    user: str
+    worker: str | None = None   # where its run is loaded
+    paused: bool = False
+    control: str = ""           # "pause" or "cancel", requested while loaded or busy
+    started: bool = False       # has run (has a checkpoint or results to make on cancel)
+    busy: bool = False          # an action on it is in flight
+    per_iteration: float | None = None  # seconds, moving average
+    used: float = 0.0           # device seconds so far
+    last_run: float = -math.inf
+    crashes: list[str] = field(default_factory=list)  # how workers were lost under it
+
+    @property
+    def wants_worker(self) -> bool:
+        return (not self.paused and self.control != "pause") or (
+            self.control == "cancel" and self.started)
 
 
-def now() -> Timestamp:
-    ts = Timestamp()
-    ts.GetCurrentTime()
-    return ts
+@dataclass
+class Worker:
+    name: str
+    ready: bool = False
+    resident: list[str] = field(default_factory=list)  # least recently run first
+    action: Action | None = None
+    current: str | None = None  # the job whose slice is running
+    slice_start: float | None = None  # None: the current job's slice starts at its next step
+
+
+@dataclass
+class Lost:
+    """What a worker's loss did to the job it was running (``job``, or "" for a task)."""
+
+    job: str = ""
+    failed: bool = False  # it had already cost a worker: it ends FAILED
+    crashes: list[str] = field(default_factory=list)  # each loss under it, in words
+    others: list[str] = field(default_factory=list)  # loaded there, to reload elsewhere
 
 
 class Scheduler:
-    def __init__(self, store: Store, data_dir: Path, variant: str | None) -> None:
-        self.store = store
-        self.data_dir = Path(data_dir)
-        self.requested_variant = variant
-        self.variant = self.device = ""
-        self._lock = threading.RLock()
-        self._wake = threading.Condition(self._lock)
-        self._tasks: collections.deque[tuple[Callable[[], Any], Future]] = collections.deque()
-        self._runnable: collections.deque[str] = collections.deque()
-        self._runs: dict[str, Run] = {}
-        self._watchers: dict[str, _Watchers] = collections.defaultdict(_Watchers)
-        self._scene_cache: collections.OrderedDict[str, Any] = collections.OrderedDict()
-        self._stopping = False
-        self._ready = Future()
-        self._thread = threading.Thread(target=self._main, name="matoptd-worker", daemon=True)
-        self._recover()
+    def __init__(self, clock: Callable[[], float] = time.monotonic,
+                 slice_seconds: float = SLICE_SECONDS, step_seconds: float = STEP_SECONDS,
+                 max_resident: int = 1) -> None:
+        self.clock = clock
+        self.slice_seconds, self.step_seconds = slice_seconds, step_seconds
+        self.max_resident = max_resident
+        self.jobs: dict[str, Job] = {}
+        self.workers: dict[str, Worker] = {}
+        self.tasks: collections.deque = collections.deque()
+        self.usage: dict[str, float] = collections.defaultdict(float)  # per user
+        self.served: dict[str, float] = collections.defaultdict(lambda: -math.inf)  # last
 
-    # -- life cycle -------------------------------------------------------------------------
+    # -- workers ----------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Starts the worker and waits until the engine is initialised (or raises why not)."""
-        self._thread.start()
-        self._ready.result()
+    def add_worker(self, name: str) -> None:
+        self.workers[name] = Worker(name)
 
-    def stop(self) -> None:
-        """Finishes the current iteration, checkpoints loaded jobs, marks running ones
-        INTERRUPTED."""
-        with self._lock:
-            self._stopping = True
-            self._wake.notify_all()
-        if self._thread.is_alive():
-            self._thread.join()
+    def worker_ready(self, name: str) -> None:
+        self.workers[name].ready = True
 
-    def _recover(self) -> None:
-        """After a restart: running jobs were interrupted; queued ones run again."""
-        for job in self.store.list_jobs(None, 0, 1 << 30, (pb.RUNNING, pb.QUEUED)):
-            if job.state == pb.RUNNING:
-                job.state = pb.INTERRUPTED
-                job.stop_reason = "the daemon stopped while the job ran"
-                job.update_time.CopyFrom(now())
-                self.store.put_job(job)
-            else:
-                self._runnable.append(job.name)
+    def worker_lost(self, name: str, what: str = "", counts: bool = True) -> Lost:
+        """The worker's process is gone: its loaded jobs lose their runs. The one it was
+        running is retried once; with ``counts`` (the worker died or hung, rather than being
+        stopped on purpose) a second loss under the same job fails it. ``what`` says how it
+        was lost, for the job's message."""
+        w = self.workers[name]
+        lost = Lost()
+        action, w.action = w.action, None
+        for job in [self.jobs[j] for j in w.resident if j in self.jobs]:
+            job.worker, job.busy = None, False
+            if action is not None and job.name == action.job:
+                continue
+            lost.others.append(job.name)
+        if action is not None and action.job in self.jobs:
+            job = self.jobs[action.job]
+            job.busy, job.worker = False, None
+            lost.job = job.name
+            if counts:
+                job.crashes.append(what)
+                lost.failed = len(job.crashes) >= 2
+            lost.crashes = list(job.crashes)
+            if lost.failed:
+                self.remove(job.name)
+        w.ready, w.resident, w.current = False, [], None
+        return lost
 
-    # -- tasks: engine work for the handlers ------------------------------------------------
+    # -- jobs -------------------------------------------------------------------------------
 
-    def submit(self, fn: Callable[[], Any]) -> Future:
-        """Runs ``fn`` on the worker before the next iteration of any job."""
-        fut: Future = Future()
-        with self._lock:
-            if self._stopping:
-                fut.set_exception(FailedPrecondition("the daemon is shutting down"))
-                return fut
-            self._tasks.append((fn, fut))
-            self._wake.notify_all()
-        return fut
+    def add_job(self, name: str, user: str, paused: bool = False,
+                started: bool = False) -> None:
+        self._activate(user)
+        self.jobs[name] = Job(name, user, paused=paused, started=started)
 
-    async def call(self, fn: Callable[[], Any]) -> Any:
-        return await asyncio.wrap_future(self.submit(fn))
+    def remove(self, name: str) -> None:
+        job = self.jobs.pop(name, None)
+        if job is not None and job.worker in self.workers:
+            w = self.workers[job.worker]
+            if name in w.resident:
+                w.resident.remove(name)
+            if w.current == name:
+                w.current = None
 
-    def engine(self):
-        """The engine module; to be used inside submitted tasks only."""
-        from .engine import service
-        return service
+    def pause(self, name: str) -> bool:
+        """True when the job is parked now (it was not loaded); else it parks at the next
+        iteration boundary of its worker."""
+        job = self.jobs[name]
+        if job.worker is None and not job.busy:
+            job.paused, job.control = True, ""
+            return True
+        if job.control != "cancel":
+            job.control = "pause"
+        return False
 
-    def loaded_scene(self, scene: pb.Scene) -> Any:
-        """The scene loaded for renders (worker thread only; a small LRU cache)."""
-        if scene.name in self._scene_cache:
-            self._scene_cache.move_to_end(scene.name)
-            return self._scene_cache[scene.name]
-        loaded = self.load_scene(scene)
-        self._scene_cache[scene.name] = loaded
-        while len(self._scene_cache) > SCENE_CACHE:
-            self._scene_cache.popitem(last=False)
-        return loaded
+    def resume(self, name: str) -> None:
+        job = self.jobs[name]
+        if job.control == "pause":
+            job.control = ""  # a pause not yet carried out is withdrawn
+        if job.paused:
+            self._activate(job.user)
+            job.paused = False
 
-    def loadable(self, scene: pb.Scene) -> Path:
-        """The prepared copy of the scene's main XML (stable ids, float textures, ...)."""
-        return (self.scene_dir(scene.name) / scene.main_file).parent / scenes.LOADABLE_NAME
+    def cancel(self, name: str) -> bool:
+        """True when the job can end now, without a worker: it never ran, or it is not loaded
+        and has nothing to show. Else a worker loads it (if needed) and finishes it."""
+        job = self.jobs[name]
+        if job.worker is None and not job.busy and not job.started:
+            self.remove(name)
+            return True
+        job.control = "cancel"
+        return False
 
-    def load_scene(self, scene: pb.Scene, keys: list[str] | None = None) -> Any:
-        """A fresh Mitsuba scene (worker thread only). Jobs get their own: they change it.
-        With the ``keys`` a job optimizes, meshes that do not carry them may be merged."""
-        return self.engine().load(self.loadable(scene), dict(scene.overrides),
-                                  scene.main_file or scene.display_name, keys)
+    def in_flight(self, name: str) -> Action | None:
+        """The action running on the job, if any."""
+        for w in self.workers.values():
+            if w.action is not None and w.action.job == name:
+                return w.action
+        return None
 
-    def forget_scene(self, name: str) -> None:
-        self._scene_cache.pop(name, None)
+    # -- tasks ------------------------------------------------------------------------------
 
-    def scene_dir(self, name: str) -> Path:
-        return self.data_dir / "scenes" / name.removeprefix("scenes/")
+    def add_task(self, task: Any) -> None:
+        self.tasks.append(task)
 
-    # -- watching ---------------------------------------------------------------------------
+    # -- the decision -----------------------------------------------------------------------
 
-    def subscribe(self, name: str) -> asyncio.Queue:
-        q: asyncio.Queue = asyncio.Queue(maxsize=10000)
-        with self._lock:
-            self._watchers[name].queues.append((asyncio.get_running_loop(), q))
-        return q
+    def next(self, worker: str) -> Action | None:
+        """What the free ``worker`` does now, or None (it waits for an event)."""
+        w = self.workers[worker]
+        if not w.ready or w.action is not None:
+            return None
+        for name in w.resident:
+            job = self.jobs[name]
+            if job.control == "cancel":
+                return self._begin(w, Action("cancel", worker, name))
+            if job.control == "pause":
+                return self._begin(w, Action("park", worker, name))
+        if self.tasks:
+            return self._begin(w, Action("task", worker, task=self.tasks.popleft()))
+        job = self._pick(w)
+        if job is None:
+            return None
+        if job.worker == worker:
+            if w.current != job.name or w.slice_start is None or self._expired(w):
+                w.current, w.slice_start = job.name, self.clock()  # a new slice
+            return self._begin(w, Action("step", worker, job.name, n=self._iterations(job, w)))
+        if len(w.resident) >= self.max_resident:
+            return self._begin(w, Action("evict", worker, w.resident[0]))
+        return self._begin(w, Action("load", worker, job.name))
 
-    def unsubscribe(self, name: str, q: asyncio.Queue) -> None:
-        with self._lock:
-            w = self._watchers.get(name)
-            if w:
-                w.queues = [(lp, x) for lp, x in w.queues if x is not q]
-                if not w.queues:
-                    del self._watchers[name]
+    def done(self, action: Action, iterations: int = 0, finished: bool = False) -> None:
+        """The action completed (``finished``: the job ended with it, whatever its outcome).
+        Its time goes to the job's user."""
+        w = self.workers[action.worker]
+        w.action = None
+        seconds = self.clock() - action.began
+        job = self.jobs.get(action.job)
+        if job is None:
+            return
+        job.busy = False
+        self.usage[job.user] += seconds
+        job.used += seconds
+        job.last_run = self.served[job.user] = self.clock()
+        if action.kind == "step" and iterations:
+            rate = seconds / iterations
+            job.per_iteration = rate if job.per_iteration is None else (
+                EMA * rate + (1 - EMA) * job.per_iteration)
+            job.started = True
+        if action.kind == "load":
+            # A job just loaded gets its slice whatever the load cost: evicting it before it
+            # stepped would waste the load.
+            job.worker = w.name
+            w.resident.append(job.name)
+            w.current, w.slice_start = job.name, None
+        elif action.kind in ("evict", "park"):
+            self._unload(job, w)
+            job.started = True
+            if action.kind == "park":
+                job.paused, job.control = True, ""
+        if finished or action.kind == "cancel":
+            self.remove(job.name)
 
-    def _publish(self, name: str, event: pb.JobEvent) -> None:
-        """Hands the event to every watcher: one wake-up per event loop, not per watcher, since
-        each wake-up takes the GIL from the worker while it prepares the next render."""
-        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Queue]] = {}
-        with self._lock:
-            for loop, q in self._watchers.get(name, _Watchers()).queues:
-                by_loop.setdefault(loop, []).append(q)
-        for loop, queues in by_loop.items():
-            try:
-                loop.call_soon_threadsafe(_offer, queues, event)
-            except RuntimeError:  # that loop is closed: its watchers are gone
-                pass
+    # -- inside -----------------------------------------------------------------------------
 
-    def _save(self, job: pb.Job) -> None:
-        job.update_time.CopyFrom(now())
-        self.store.put_job(job)
-        self._publish(job.name, pb.JobEvent(job=job))
+    def _begin(self, w: Worker, action: Action) -> Action:
+        action.began = self.clock()
+        w.action = action
+        if action.job:
+            self.jobs[action.job].busy = True
+            if action.job in w.resident:  # most recently run last
+                w.resident.remove(action.job)
+                w.resident.append(action.job)
+        return action
 
-    # -- control (from handlers) ------------------------------------------------------------
+    def _unload(self, job: Job, w: Worker) -> None:
+        job.worker = None
+        if job.name in w.resident:
+            w.resident.remove(job.name)
+        if w.current == job.name:
+            w.current = None
 
-    def enqueue(self, job: pb.Job) -> None:
-        with self._lock:
-            self._runnable.append(job.name)
-            self._wake.notify_all()
+    def _activate(self, user: str) -> None:
+        """A user with nothing to run comes back at the least busy active user's account: no
+        credit saved up while away, no debt either."""
+        active = {j.user for j in self.jobs.values() if j.wants_worker}
+        if user not in active and active:
+            self.usage[user] = max(self.usage[user], min(self.usage[u] for u in active))
 
-    def pause(self, owner: str, name: str) -> pb.Job:
-        with self._lock:
-            job = self.store.get_job(name, owner)
-            if job.state == pb.QUEUED and name not in self._runs:
-                if name in self._runnable:
-                    self._runnable.remove(name)
-                job.state = pb.PAUSED
-                self._save(job)
-            elif job.state in (pb.QUEUED, pb.RUNNING):
-                self._runs[name].control = "pause"
-            elif job.state != pb.PAUSED:
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
-                                         "queued or running job can be paused")
-            return job
+    def _candidates(self, w: Worker) -> list[Job]:
+        return [j for j in self.jobs.values()
+                if j.wants_worker and not j.busy and j.worker in (None, w.name)]
 
-    def resume(self, owner: str, name: str) -> pb.Job:
-        with self._lock:
-            job = self.store.get_job(name, owner)
-            if job.state in (pb.QUEUED, pb.RUNNING):
-                if name in self._runs:
-                    self._runs[name].control = ""  # a pending pause is withdrawn
+    def _pick(self, w: Worker) -> Job | None:
+        candidates = self._candidates(w)
+        if not candidates:
+            return None
+        current = self.jobs.get(w.current) if w.current else None
+        if current in candidates and (not self._expired(w) or len(candidates) == 1):
+            return current
+        by_user: dict[str, list[Job]] = collections.defaultdict(list)
+        for j in candidates:
+            by_user[j.user].append(j)
+        # Cancels first (a user is waiting on the results), then fair share; between users
+        # with the same account, the one served longest ago.
+        order = sorted(by_user, key=lambda u: (self.usage[u], self.served[u]))
+        ranked = [j for u in order for j in sorted(
+            by_user[u], key=lambda j: (j.control != "cancel", j.used, j.last_run))]
+        ranked.sort(key=lambda j: j.control != "cancel")
+        for job in ranked:
+            if job.worker == w.name or not self._better_placed(job, w):
                 return job
-            if job.state not in (pb.PAUSED, pb.INTERRUPTED):
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
-                                         "paused or interrupted job can be resumed")
-            job.state = pb.QUEUED
-            run = self._runs.get(name)
-            job.resumed_from = (f"iteration {run.opt.iteration}, kept in memory" if run
-                                else "pending")  # _load says from where
-            self._save(job)
-            self._runnable.append(name)
-            self._wake.notify_all()
-            return job
+        return current if current in candidates else None
 
-    def cancel(self, owner: str, name: str) -> pb.Job:
-        with self._lock:
-            job = self.store.get_job(name, owner)
-            if job.state in FINAL:
-                raise FailedPrecondition(f"job '{name}' already ended "
-                                         f"({pb.State.Name(job.state)})")
-            if name in self._runs:
-                self._runs[name].control = "cancel"
-                if name not in self._runnable:  # paused: let the worker wrap it up
-                    self._runnable.append(name)
-                self._wake.notify_all()
-            else:
-                if name in self._runnable:
-                    self._runnable.remove(name)
-                job.state, job.stop_reason = pb.CANCELLED, "cancelled"
-                self._save(job)
-            return job
+    def _expired(self, w: Worker) -> bool:
+        return w.slice_start is not None and self.clock() - w.slice_start >= self.slice_seconds
 
-    def delete(self, owner: str, name: str) -> None:
-        with self._lock:
-            job = self.store.get_job(name, owner)
-            if job.state == pb.RUNNING or name in self._runs:
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: cancel "
-                                         "it before deleting it")
-            if name in self._runnable:
-                self._runnable.remove(name)
-            self.store.delete_job(name)
+    def _better_placed(self, job: Job, w: Worker) -> bool:
+        """Whether another free worker is less loaded than ``w`` for a job to be loaded."""
+        mine = len(w.resident)
+        return any(o is not w and o.ready and o.action is None and len(o.resident) < mine
+                   for o in self.workers.values())
 
-    # -- the worker -------------------------------------------------------------------------
-
-    def _main(self) -> None:
-        try:
-            self.variant, self.device = self.engine().init(self.requested_variant,
-                                                           self.data_dir)
-        except BaseException as exc:  # noqa: BLE001 - reported to start()
-            self._ready.set_exception(exc)
-            return
-        self._ready.set_result(None)
-        log.info("engine ready: %s on %s", self.variant, self.device)
-        while True:
-            with self._lock:
-                while not (self._tasks or self._runnable or self._stopping):
-                    self._wake.wait()
-                if self._stopping:
-                    break
-                task = self._tasks.popleft() if self._tasks else None
-                name = None
-                if task is None:
-                    name = self._runnable[0]
-                    self._runnable.rotate(-1)
-            if task is not None:
-                fn, fut = task
-                if fut.set_running_or_notify_cancel():
-                    try:
-                        fut.set_result(fn())
-                    except BaseException as exc:  # noqa: BLE001 - handed to the caller
-                        fut.set_exception(exc)
-            else:
-                self._turn(name)
-        self._shutdown()
-        for _, fut in self._tasks:
-            fut.cancel()
-
-    def _shutdown(self) -> None:
-        for name, run in list(self._runs.items()):
-            try:
-                job = self.store.get_job(name)
-                self._checkpoint(name, run)
-                if job.state in (pb.RUNNING, pb.QUEUED):
-                    job.state = pb.INTERRUPTED
-                    job.stop_reason = "the daemon was shut down; resume continues from the " \
-                                      f"checkpoint at iteration {run.opt.iteration}"
-                    self._save(job)
-            except Exception:  # noqa: BLE001 - best effort on the way out
-                log.exception("could not checkpoint %s on shutdown", name)
-
-    def _turn(self, name: str) -> None:
-        """One iteration of one job, with everything that can go wrong contained to it.
-
-        Scenes kept loaded for renders are dropped first: Mitsuba dispatches a virtual call
-        (a BSDF's, an emitter's) over every live instance in the process, so each scene held
-        makes every job's kernels bigger (bench/live_scenes.py measures it)."""
-        self._scene_cache.clear()
-        with self._lock:
-            try:
-                job = self.store.get_job(name)
-            except UserError:  # deleted meanwhile
-                self._drop(name)
-                return
-            if name not in self._runs and job.state != pb.QUEUED:
-                self._drop(name)  # paused or cancelled after this turn was chosen
-                return
-        try:
-            run = self._runs.get(name) or self._load(job)
-            if run is None:
-                return
-            with self._lock:
-                control = run.control
-                if job.state == pb.QUEUED and not control:  # resumed while kept in memory
-                    job.state = pb.RUNNING
-                    self._save(job)
-            if control == "pause":
-                self._checkpoint(name, run)
-                with self._lock:
-                    run.control = ""
-                    self._runnable.remove(name)
-                    job.state = pb.PAUSED
-                    self._save(job)
-                return
-            if control == "cancel":
-                self._finish(job, run, pb.CANCELLED, "cancelled")
-                return
-            self._iterate(job, run)
-        except UserError as exc:
-            self._fail(job, str(exc))
-        except Exception as exc:  # noqa: BLE001 - a job's failure must not stop the daemon
-            log.error("job %s failed:\n%s", name, traceback.format_exc())
-            self._fail(job, f"internal error: {type(exc).__name__}: {exc}")
-
-    def _load(self, job: pb.Job) -> Run | None:
-        """Loads a queued job onto the worker; None when a handler paused or cancelled it
-        while its scene loaded (it was not in ``_runs`` yet, so the handler changed it)."""
-        scene = self.store.get_scene(job.owner, job.spec.scene)
-        refs = {}
-        for i, ref in enumerate(job.spec.references):
-            index = ref.sensor if ref.HasField("sensor") else i
-            refs[index] = (self.store.blob_file(ref.blob), ref.filename or ref.blob)
-        blob = self.store.checkpoint(job.name)
-        checkpoint = self.store.blob_file(blob).read_bytes() if blob else None
-        keys = [p.key for p in job.spec.parameters]
-        opt = self.engine().start_job(self.load_scene(scene, keys), job.spec, refs,
-                                      self._read_blob, checkpoint)
-        params = {p.key: p
-                  for p in self.store.scene_parameters(job.owner, job.spec.scene).parameters}
-        run = Run(opt, {k: list(params[k].shape) for k in opt.settings},
-                  {k: params[k].kind for k in opt.settings})
-        with self._lock:
-            if self.store.get_job(job.name).state != pb.QUEUED:
-                self._drop(job.name)
-                return None
-            self._runs[job.name] = run
-            job.state = pb.RUNNING
-            job.integrator, job.integrator_reason = opt.integrator_name, opt.integrator_reason
-            job.sensors_rendered[:] = sorted(refs)
-            job.notes[:] = opt.notes
-            if job.resumed_from == "pending":
-                job.resumed_from = (f"checkpoint at iteration {opt.iteration}" if checkpoint
-                                    else "from the start")
-            self.store.truncate_history(job.name, opt.iteration)  # they will run again
-            self._save(job)
-        return run
-
-    def _iterate(self, job: pb.Job, run: Run) -> None:
-        opt = run.opt
-        step = opt.step()
-        stepped = time.perf_counter()
-        record = pb.IterationRecord(
-            iteration=step.iteration, seconds=opt.elapsed, loss=step.loss,
-            parameters=self.engine().values_to_proto(step.values, run.shapes, None),
-            errors=[pb.ParameterError(key=k, max_abs=e[0], rmse=e[1], relative=e[2])
-                    for k, e in step.errors.items()])
-        if step.image_error is not None:
-            record.image_error = step.image_error
-        self.store.add_iteration(job.name, record)
-        with self._lock:
-            job.iteration = step.iteration + 1
-            job.loss = step.loss
-            job.best_iteration, job.best_loss = opt.best.iteration, opt.best.loss
-            job.elapsed_seconds = opt.elapsed
-            _count_guards(job, opt)
-            self.store.put_job(job)
-        self._publish(job.name, pb.JobEvent(iteration=record))
-        if step.done:
-            self._finish(job, run, pb.SUCCEEDED, step.stop_reason, last=step)
-            return
-        if opt.iteration % CHECKPOINT_EVERY == 0:
-            self._checkpoint(job.name, run)
-        # Recording and checkpointing are the job's work too: on its clock from the next
-        # iteration's time on.
-        opt.elapsed += time.perf_counter() - stepped
-
-    def _finish(self, job: pb.Job, run: Run, state: int, reason: str, last=None) -> None:
-        opt = run.opt
-        history = self.store.history(job.name)
-        chosen = []
-        if opt.best.iteration >= 0:
-            chosen.append((pb.BEST, opt.best.iteration, opt.best.loss, opt.best.values))
-        if last is not None:
-            chosen.append((pb.LAST, last.iteration, last.loss, last.values))
-        elif history:
-            h = history[-1]
-            chosen.append((pb.LAST, h.iteration, h.loss, opt.values()))
-        scene = self.store.get_scene(job.owner, job.spec.scene)
-        for res in self.engine().results(opt, job.name, chosen, run.shapes, run.kinds,
-                                          self.store.put_blob, scene, self.loadable(scene)):
-            self.store.put_result(res)
-        notes = self.engine().diagnose(opt, chosen[-1][3] if chosen else {}, history)
-        with self._lock:
-            self._drop(job.name)
-            _count_guards(job, opt)  # diagnose() read the last step's counts
-            job.notes.extend(notes)
-            job.state, job.stop_reason = state, reason
-            self._save(job)
-
-    def _fail(self, job: pb.Job, message: str) -> None:
-        with self._lock:
-            self._drop(job.name)
-            job.state, job.error, job.stop_reason = pb.FAILED, message, "failed"
-            self._save(job)
-
-    def _drop(self, name: str) -> None:
-        with self._lock:
-            self._runs.pop(name, None)
-            if name in self._runnable:
-                self._runnable.remove(name)
-
-    def _checkpoint(self, name: str, run: Run) -> None:
-        self.store.set_checkpoint(name, self.store.put_blob(run.opt.checkpoint()))
-
-    def _read_blob(self, name: str) -> bytes:
-        return self.store.blob_file(name).read_bytes()
-
-
-def _count_guards(job: pb.Job, opt) -> None:
-    """The job's guard counters; the latest step's are added at the next read of values."""
-    job.nonfinite_gradient_steps = opt.nonfinite_steps
-    job.skipped_steps = opt.skipped_steps
-    job.clamped_components = opt.clamped
-
-
-def _offer(queues: list[asyncio.Queue], event: pb.JobEvent) -> None:
-    """Queues an event for watchers; a watcher too slow to keep up loses iteration events,
-    never state changes (the final one ends its stream)."""
-    for q in queues:
-        try:
-            q.put_nowait(event)
-        except asyncio.QueueFull:
-            if event.HasField("job"):
-                q.get_nowait()
-                q.put_nowait(event)
+    def _iterations(self, job: Job, w: Worker) -> int:
+        """Iterations for one step call: about ``step_seconds`` of work, within the slice when
+        others wait."""
+        if job.per_iteration is None or job.per_iteration <= 0:
+            return 1
+        budget = self.step_seconds
+        if len(self._candidates(w)) > 1 and w.slice_start is not None:
+            left = self.slice_seconds - (self.clock() - w.slice_start)
+            budget = min(budget, max(left, job.per_iteration))
+        return max(1, min(MAX_STEP, int(budget / job.per_iteration)))

@@ -1,5 +1,6 @@
 """The gRPC handlers: requests are checked here, in the caller's terms, before any engine work
-is queued; engine work goes to the scheduler's worker. A handler never touches Dr.Jit.
+is queued; engine work goes to a worker process through the runner. This process never
+imports Mitsuba or Dr.Jit.
 
 Every failure a user can cause becomes a canonical status code with a message naming the file,
 key or value; anything else is INTERNAL, logged, and confined to that one request.
@@ -12,7 +13,6 @@ import difflib
 import functools
 import logging
 import math
-import shutil
 import uuid
 
 import grpc
@@ -21,10 +21,10 @@ from matoptd import __version__
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from . import scenes
+from . import convert, scenes
 from .auth import Authenticator
 from .errors import FailedPrecondition, InvalidArgument, UserError
-from .scheduler import FINAL, Scheduler, now
+from .runner import FINAL, Runner, now
 from .store import CHUNK, Store
 
 log = logging.getLogger("matoptd.server")
@@ -116,8 +116,8 @@ def _name(prefix: str, name: str) -> str:
 class Service:
     """State shared by the servicers."""
 
-    def __init__(self, store: Store, scheduler: Scheduler, auth: Authenticator) -> None:
-        self.store, self.scheduler, self.auth = store, scheduler, auth
+    def __init__(self, store: Store, runner: Runner, auth: Authenticator) -> None:
+        self.store, self.runner, self.auth = store, runner, auth
 
 
 # -- blobs -----------------------------------------------------------------------------------
@@ -165,7 +165,7 @@ class Blobs(rpc.BlobsServicer):
 
 class Scenes(rpc.ScenesServicer):
     def __init__(self, svc: Service) -> None:
-        self.store, self.scheduler, self.auth = svc.store, svc.scheduler, svc.auth
+        self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
 
     @unary
     async def CreateScene(self, request, context, user):
@@ -173,33 +173,32 @@ class Scenes(rpc.ScenesServicer):
             existing = self.store.scene_by_request(user, request.request_id)
             if existing:
                 return existing
-        name = f"scenes/{uuid.uuid4().hex[:12]}"
-        directory = self.scheduler.scene_dir(name)
-        try:
-            main = scenes.materialize(self.store, directory, request.main_file,
-                                      list(request.files), dict(request.overrides))
-            prepared = scenes.prepare(directory, main, dict(request.overrides))
+        overrides = dict(request.overrides)
+        if not request.main_file and not request.files:
+            main = scenes.CORNELL_NAME
+            paths = {main: self.store.put_blob(scenes.CORNELL_BOX.read_bytes())
+                     .removeprefix("blobs/")}
+            display = request.display_name or "cornell-box"
+        else:
+            main, paths = scenes.check_bundle(self.store, request.main_file,
+                                              list(request.files), overrides)
             display = request.display_name or main.rsplit("/", 1)[-1]
-            scene = pb.Scene(name=name, display_name=display,
-                             main_file=request.main_file and main, files=request.files,
-                             overrides=prepared.overrides, warnings=prepared.warnings)
-            if not request.main_file and not request.files:
-                scene.main_file, scene.display_name = main, request.display_name or "cornell-box"
-
-            def inspect():
-                engine = self.scheduler.engine()
-                loaded = engine.load(prepared.loadable, prepared.overrides, main)
-                return engine.inspect(loaded)
-
-            sensors, media, params = await self.scheduler.call(inspect)
-        except BaseException:
-            shutil.rmtree(directory, ignore_errors=True)
-            raise
-        scene.sensors.extend(sensors)
-        scene.has_media, scene.parameter_count = media, len(params)
+        prepared = scenes.prepare(self.store.read_blob(paths[main]), main, overrides)
+        loadable = scenes.loadable_path(main)
+        inputs = convert.scene_input(
+            loadable, {**paths, loadable: self.store.put_blob(prepared.xml).removeprefix("blobs/")},
+            prepared.overrides, main)
+        described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
+        scene = pb.Scene(name=f"scenes/{uuid.uuid4().hex[:12]}", display_name=display,
+                         main_file=main, files=request.files, overrides=prepared.overrides,
+                         warnings=prepared.warnings,
+                         sensors=convert.sensors_to_pb(described.sensors),
+                         has_media=described.has_media,
+                         parameter_count=len(described.parameters))
         scene.create_time.CopyFrom(now())
-        self.store.add_scene(user, request.request_id, scene,
-                             pb.ListSceneParametersResponse(parameters=params))
+        self.store.add_scene(user, request.request_id, scene, pb.ListSceneParametersResponse(
+            parameters=[convert.parameter_to_pb(p) for p in described.parameters]),
+            convert.scene_input_to_json(inputs))
         return scene
 
     @unary
@@ -225,7 +224,6 @@ class Scenes(rpc.ScenesServicer):
                 f"({', '.join(using[:3])}{', ...' if len(using) > 3 else ''}): a paused or "
                 "interrupted job reloads its scene to resume; cancel or delete them first")
         self.store.delete_scene(user, name)
-        await self.scheduler.call(lambda: self.scheduler.forget_scene(name))
         return pb.DeleteSceneResponse()
 
     @unary
@@ -237,13 +235,11 @@ class Scenes(rpc.ScenesServicer):
         scene = self.store.get_scene(user, _name("scenes", request.name))
         if request.HasField("spp") and request.spp < 1:
             raise InvalidArgument(f"spp must be >= 1, got {request.spp}")
-
-        def render():
-            return self.scheduler.engine().render(
-                self.scheduler.loaded_scene(scene), request, self.store.put_blob,
-                lambda b: self.store.blob_file(b).read_bytes())
-
-        return pb.RenderSceneResponse(images=await self.scheduler.call(render))
+        inputs = self.runner.scene_input(scene)
+        render = convert.render_request(request, self.store.read_blob)
+        images = await self.runner.task(lambda engine: engine.render(inputs, render))
+        return pb.RenderSceneResponse(images=[convert.image_to_pb(i, self.store.put_blob)
+                                              for i in images])
 
 
 # -- jobs ------------------------------------------------------------------------------------
@@ -348,7 +344,7 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
 
 class Jobs(rpc.JobsServicer):
     def __init__(self, svc: Service) -> None:
-        self.store, self.scheduler, self.auth = svc.store, svc.scheduler, svc.auth
+        self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
 
     @unary
     async def CreateJob(self, request, context, user):
@@ -361,19 +357,16 @@ class Jobs(rpc.JobsServicer):
         spec = _check_spec(request.spec, scene, params, self.store)
         if request.initial_from_job:
             self._start_from(user, request, spec)
-
-        def check_references():
-            engine = self.scheduler.engine()
-            for r in spec.references:
-                engine.check_reference(self.store.blob_file(r.blob), r.filename or r.blob)
-
-        await self.scheduler.call(check_references)
+        # Decoding every value now refuses a malformed .npy here, not when the job loads.
+        settings = convert.job_settings(spec, self.runner.scene_input(scene),
+                                        self.store.read_blob)
+        await self.runner.task(lambda engine: engine.check_references(settings.references))
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
                      owner=user, best_iteration=-1)
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)
-        self.scheduler.enqueue(job)
+        self.runner.submit(job)
         return job
 
     def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec) -> None:
@@ -409,26 +402,26 @@ class Jobs(rpc.JobsServicer):
 
     @unary
     async def DeleteJob(self, request, context, user):
-        self.scheduler.delete(user, _name("jobs", request.name))
+        self.runner.delete(user, _name("jobs", request.name))
         return pb.DeleteJobResponse()
 
     @unary
     async def PauseJob(self, request, context, user):
-        return self.scheduler.pause(user, _name("jobs", request.name))
+        return self.runner.pause(user, _name("jobs", request.name))
 
     @unary
     async def ResumeJob(self, request, context, user):
-        return self.scheduler.resume(user, _name("jobs", request.name))
+        return self.runner.resume(user, _name("jobs", request.name))
 
     @unary
     async def CancelJob(self, request, context, user):
-        return self.scheduler.cancel(user, _name("jobs", request.name))
+        return self.runner.cancel(user, _name("jobs", request.name))
 
     @streaming
     async def WatchJob(self, request, context, user):
         name = _name("jobs", request.name)
         self.store.get_job(name, user)  # NOT_FOUND before subscribing
-        queue = self.scheduler.subscribe(name)
+        queue = self.runner.subscribe(name)
         try:
             job = self.store.get_job(name, user)
             yield pb.JobEvent(job=job)
@@ -440,7 +433,7 @@ class Jobs(rpc.JobsServicer):
                 if event.HasField("job") and event.job.state in FINAL:
                     return
         finally:
-            self.scheduler.unsubscribe(name, queue)
+            self.runner.unsubscribe(name, queue)
 
     @unary
     async def GetJobResult(self, request, context, user):
@@ -465,18 +458,21 @@ class Jobs(rpc.JobsServicer):
 
 class Server(rpc.ServerServicer):
     def __init__(self, svc: Service) -> None:
-        self.scheduler, self.auth = svc.scheduler, svc.auth
+        self.runner, self.auth = svc.runner, svc.auth
 
     @unary
     async def GetServerInfo(self, request, context, user):
+        workers = self.runner.worker_listing(user)
+        first = next((w for w in workers if w.variant), pb.Worker())
         return pb.ServerInfo(
-            version=__version__, variant=self.scheduler.variant, device=self.scheduler.device,
-            user=user, losses=[pb.Loss.Name(v).lower() for v in pb.Loss.values()
+            version=__version__, variant=first.variant, device=first.device, user=user,
+            workers=workers, losses=[pb.Loss.Name(v).lower() for v in pb.Loss.values()
                                if v not in (pb.LOSS_UNSPECIFIED, pb.MEAN_BIAS_ERROR)],
             integrators=["prb", "prbvolpath", "prb_projective", "direct_projective"],
             capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
                           "checkpoint-resume", "watch", "render", "multi-user", "restart",
-                          "ground-truth-errors", "image-error", "optimized-scene-export"])
+                          "ground-truth-errors", "image-error", "optimized-scene-export",
+                          "worker-processes"])
 
 
 def add_services(server: grpc.aio.Server, svc: Service) -> list[str]:

@@ -39,6 +39,9 @@ CREATE TABLE IF NOT EXISTS results (
     PRIMARY KEY (job, which));
 """
 
+# Columns added since the first release, for data dirs made by it.
+_MIGRATIONS = {("scenes", "inputs"): "ALTER TABLE scenes ADD COLUMN inputs TEXT"}
+
 CHUNK = 1 << 20
 
 
@@ -52,6 +55,11 @@ class Store:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
+        for (table, column), sql in _MIGRATIONS.items():
+            if column not in [r[1] for r in self._db.execute(f"PRAGMA table_info({table})")]:
+                self._db.execute(sql)
+        self.checkpoint_dir = self.root / "checkpoints"
+        self.checkpoint_dir.mkdir(exist_ok=True)
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -81,6 +89,9 @@ class Store:
         upload.write(data)
         return upload.commit().name
 
+    def read_blob(self, name: str) -> bytes:
+        return self.blob_file(name).read_bytes()
+
     def blob_file(self, name: str) -> Path:
         """The file behind ``blobs/{sha256}`` (or a bare digest); NOT_FOUND if absent."""
         sha = name.removeprefix("blobs/")
@@ -92,13 +103,22 @@ class Store:
     # -- scenes -----------------------------------------------------------------------------
 
     def add_scene(self, owner: str, request_id: str | None, scene: pb.Scene,
-                  parameters: pb.ListSceneParametersResponse) -> None:
+                  parameters: pb.ListSceneParametersResponse, inputs: str) -> None:
+        """``inputs``: what a worker loads (engine_api.SceneInput as JSON)."""
         with self._lock:
             self._db.execute(
-                "INSERT INTO scenes VALUES (?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM scenes),"
-                " ?, ?)",
+                "INSERT INTO scenes (name, owner, request_id, seq, scene, parameters, inputs) "
+                "VALUES (?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM scenes), ?, ?, ?)",
                 (scene.name, owner, request_id or None, scene.SerializeToString(),
-                 parameters.SerializeToString()))
+                 parameters.SerializeToString(), inputs))
+
+    def scene_inputs(self, name: str) -> str | None:
+        rows = self._query("SELECT inputs FROM scenes WHERE name=?", (name,))
+        return rows[0][0] if rows else None
+
+    def set_scene_inputs(self, name: str, inputs: str) -> None:
+        with self._lock:
+            self._db.execute("UPDATE scenes SET inputs=? WHERE name=?", (inputs, name))
 
     def scene_by_request(self, owner: str, request_id: str) -> pb.Scene | None:
         rows = self._query("SELECT scene FROM scenes WHERE owner=? AND request_id=?",
@@ -170,14 +190,41 @@ class Store:
         with self._lock:
             for table, col in (("jobs", "name"), ("iterations", "job"), ("results", "job")):
                 self._db.execute(f"DELETE FROM {table} WHERE {col}=?", (name,))
+        self._checkpoint_file(name).unlink(missing_ok=True)
 
-    def set_checkpoint(self, name: str, blob: str | None) -> None:
-        with self._lock:
-            self._db.execute("UPDATE jobs SET checkpoint=? WHERE name=?", (blob, name))
+    # -- checkpoints: one file per job, replaced in place ------------------------------------
 
-    def checkpoint(self, name: str) -> str | None:
+    def _checkpoint_file(self, name: str) -> Path:
+        return self.checkpoint_dir / f"{name.removeprefix('jobs/')}.npz"
+
+    def write_checkpoint(self, name: str, data: bytes) -> None:
+        """Atomically: a crash while writing leaves the previous checkpoint."""
+        path = self._checkpoint_file(name)
+        fd, tmp = tempfile.mkstemp(dir=self.checkpoint_dir, prefix=".write-")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    def read_checkpoint(self, name: str) -> bytes | None:
+        """The job's latest checkpoint (data dirs of the first release kept it as a blob)."""
+        try:
+            return self._checkpoint_file(name).read_bytes()
+        except FileNotFoundError:
+            pass
         rows = self._query("SELECT checkpoint FROM jobs WHERE name=?", (name,))
-        return rows[0][0] if rows else None
+        if rows and rows[0][0]:
+            try:
+                return self.blob_file(rows[0][0]).read_bytes()
+            except NotFound:
+                return None
+        return None
+
+    def has_checkpoint(self, name: str) -> bool:
+        return self.read_checkpoint(name) is not None
 
     # -- histories and results --------------------------------------------------------------
 
@@ -234,6 +281,7 @@ class Upload:
                                       f"{self.size}")
             path = self.store.blob_path(got)
             path.parent.mkdir(exist_ok=True)
+            os.chmod(self.tmp, 0o444)  # a blob never changes: its name is its content
             os.replace(self.tmp, path)
             return pb.Blob(name=f"blobs/{got}", sha256=got, size_bytes=self.size)
         finally:

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 _DRIVE = re.compile(r"^[A-Za-z]:")
 _DEFAULT_REF = re.compile(r"\$(\w+)")
+# Names the daemon gives the files it writes next to a bundle's (the prepared scene XML).
+RESERVED_PREFIX = ".matopt-"
 
 
 class BundleError(ValueError):
@@ -37,6 +39,9 @@ def normalize(path: str, *, origin: str = "") -> str:
             if not parts:
                 raise BundleError(f"path '{path}'{where} leaves the scene bundle")
             parts.pop()
+        elif part.startswith(RESERVED_PREFIX):
+            raise BundleError(f"path '{path}'{where} uses the reserved name prefix "
+                              f"'{RESERVED_PREFIX}': rename the file")
         else:
             parts.append(part)
     if not parts:

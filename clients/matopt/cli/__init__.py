@@ -17,7 +17,7 @@ os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import click  # noqa: E402
 import grpc  # noqa: E402
 
-from matopt import __version__
+from matopt import __version__, workers
 from matopt_api.bundle import BundleError
 from matopt.client import ClientError, error_message
 from matopt_api.v1 import matopt_pb2 as pb
@@ -88,7 +88,9 @@ def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) 
 def info(as_json: bool) -> None:
     """Show what the daemon runs.
 
-    Version, Mitsuba variant, device, the user your token belongs to, losses, integrators.
+    Version, Mitsuba variant, device, the user your token belongs to, losses, integrators,
+    and its renderer workers: state, device, process, memory against its limit, jobs (only
+    yours by name) and restarts.
     """
     client = connected()
     info = client.info or client.server.GetServerInfo(pb.GetServerInfoRequest())
@@ -104,7 +106,11 @@ def info(as_json: bool) -> None:
         "losses": ", ".join(info.losses),
         "integrators": ", ".join(info.integrators),
         "capabilities": ", ".join(info.capabilities),
+        # A daemon older than the workers list reports none: say nothing rather than "none".
+        "workers": workers.summary(info.workers) if info.workers else None,
     })
+    for line in workers.worker_lines(info.workers, info.variant):
+        click.echo(f"  {line}")
 
 
 def _register() -> None:

@@ -39,6 +39,7 @@ from matopt.qt.jobs_list import JobsList
 from matopt.qt.params_table import ParamsTable
 from matopt.qt.references import ReferenceList
 from matopt.qt.worker import CALL_TIMEOUT_S, JobWatcher, Tasks
+from matopt.qt.workers_label import WorkersLabel
 from matopt_api.v1 import matopt_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -144,6 +145,10 @@ class MainWindow(QMainWindow):
         self.connection.restored.connect(self._restored)
         self.connection.lost.connect(self._lost)
         self.connection.failed.connect(self._connect_failed)
+        # Every GetServerInfo answer (on connecting, then the connection's probe every few
+        # seconds) refreshes the workers; a failed probe goes to the lost-connection banner
+        # once, like any call, and the label hides until the daemon answers again.
+        self.connection.info_received.connect(self.workers_label.set_info)
         self._upload_note.connect(self._show_upload, Qt.ConnectionType.QueuedConnection)
 
         self.jobs_timer = QTimer(self)
@@ -294,6 +299,8 @@ class MainWindow(QMainWindow):
         self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, dock)
         self.resizeDocks([dock], [270], Qt.Orientation.Horizontal)
 
+        self.workers_label = WorkersLabel()
+        self.statusBar().addPermanentWidget(self.workers_label)
         self.connection_label = QLabel("not connected")
         self.statusBar().addPermanentWidget(self.connection_label)
 
@@ -367,6 +374,7 @@ class MainWindow(QMainWindow):
             self.jobs.set_jobs([])
             self._show_scene_label()
         self.connection_label.setText(f"connecting to {settings.server}…")
+        self.workers_label.set_info(None)
         self.status(f"connecting to matoptd at {settings.server}…")
         self.connection.open(settings)
 
@@ -396,11 +404,13 @@ class MainWindow(QMainWindow):
     def _lost(self, message: str) -> None:
         self.show_banner(message, "error")
         self.connection_label.setText(f"no connection to {self.connection.target}")
+        self.workers_label.set_info(None)
         self._update_actions()
 
     def _connect_failed(self, message: str) -> None:
         self.show_banner(message, "error")
         self.connection_label.setText(f"not connected ({self.connection.target})")
+        self.workers_label.set_info(None)
         self._update_actions()
 
     # =========================================================================================

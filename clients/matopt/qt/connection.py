@@ -143,13 +143,16 @@ class Connection(QObject):
     ``restored(ServerInfo)`` after a lost connection came back (with a fresh channel: gRPC's
     own reconnect back-off grows to minutes), ``lost(str)`` with the message to show, and
     ``failed(str)`` when the daemon refused the connection (e.g. an unknown token), which
-    retrying cannot fix.
+    retrying cannot fix. ``info_received(ServerInfo)`` carries every fresh GetServerInfo answer,
+    on (re)connecting and from each probe, so what it reports (the workers' states) stays
+    current at no extra call.
     """
 
     connected = Signal(object)
     restored = Signal(object)
     lost = Signal(str)
     failed = Signal(str)
+    info_received = Signal(object)
 
     def __init__(self, tasks: Tasks, probe_interval_s: float = 5.0,
                  retry_interval_s: float = 2.0, parent: QObject | None = None) -> None:
@@ -215,6 +218,7 @@ class Connection(QObject):
         was_lost, self.lost_message = self.lost_message, None
         self._schedule(self.probe_interval_s)
         log.info("connected to matoptd at %s as %s", client.target, client.info.user)
+        self.info_received.emit(client.info)
         if first and not was_lost:
             self.connected.emit(client.info)
         else:
@@ -289,6 +293,7 @@ class Connection(QObject):
         self._busy = False
         if generation == self._generation:
             self.info = info
+            self.info_received.emit(info)
 
     def _probe_failed(self, generation: int, exc: BaseException) -> None:
         self._busy = False

@@ -10,7 +10,7 @@ import tempfile
 import mitsuba as mi
 import numpy as np
 
-from ..errors import InvalidArgument
+from ..engine_api import InvalidInput
 
 
 def read_reference(path: str, name: str) -> np.ndarray:
@@ -21,7 +21,7 @@ def read_reference(path: str, name: str) -> np.ndarray:
     try:
         bitmap = mi.Bitmap(path)
     except Exception as exc:
-        raise InvalidArgument(f"reference image '{name}' cannot be read as PNG, JPEG or "
+        raise InvalidInput(f"reference image '{name}' cannot be read as PNG, JPEG or "
                               f"OpenEXR: {str(exc).strip().splitlines()[-1]}") from None
     bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
                             srgb_gamma=False)

@@ -15,8 +15,6 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 
-from matopt_api.v1 import matopt_pb2 as pb
-
 Tensor = "mi.TensorXf"  # annotations only: the class exists once a variant is set
 EPSILON = 1e-3  # keeps brightness normalization finite on black images
 
@@ -90,12 +88,11 @@ def _multiscale(images: list[Tensor], ref: Tensor, w: Tensor) -> Tensor:
     return total
 
 
-LOSSES = {
-    pb.MSE: Loss("mse", 1, _mse),
-    pb.DUAL_BUFFER: Loss("dual_buffer", 2, _dual_buffer, window=8),
-    pb.BRIGHTNESS_INDEPENDENT_MSE: Loss("brightness_independent_mse", 1,
-                                        _brightness_independent),
-    pb.MAE: Loss("mae", 1, _mae),
-    pb.MEAN_BIAS_ERROR: Loss("mean_bias_error", 1, _mean_bias, objective=False),
-    pb.MULTISCALE_MSE: Loss("multiscale_mse", 1, _multiscale),
-}
+LOSSES = {loss.name: loss for loss in (
+    Loss("mse", 1, _mse),
+    Loss("dual_buffer", 2, _dual_buffer, window=8),
+    Loss("brightness_independent_mse", 1, _brightness_independent),
+    Loss("mae", 1, _mae),
+    Loss("mean_bias_error", 1, _mean_bias, objective=False),
+    Loss("multiscale_mse", 1, _multiscale),
+)}

@@ -71,7 +71,7 @@ class Reference:
 
 @dataclass
 class Config:
-    loss: int
+    loss: str  # a key of LOSSES
     iterations: int
     min_error: float
     spp: int
@@ -97,6 +97,8 @@ class Step:
 
 @dataclass
 class Best:
+    """An iteration and the parameters that produced its loss (the best so far, or the last)."""
+
     iteration: int = -1
     loss: float = math.inf
     values: dict[str, np.ndarray] = field(default_factory=dict)
@@ -148,6 +150,7 @@ class Optimization:
         self.iteration = 0          # the next iteration to run
         self.elapsed = 0.0          # optimizing seconds, excluding pauses and other jobs' turns
         self.best = Best()
+        self.last = Best()          # the latest iteration run
         self.nonfinite_steps = 0
         self.skipped_steps = 0
         self.clamped = 0
@@ -217,6 +220,7 @@ class Optimization:
         judged = self._judge(loss)
         if judged is not None and judged < self.best.loss:
             self.best = Best(i, judged, theta)
+        self.last = Best(i, loss, theta)
         reached = self._reached(loss)
         self.iteration = i + 1
         self.elapsed += time.perf_counter() - start
@@ -331,41 +335,49 @@ class Optimization:
     # -- checkpoints ------------------------------------------------------------------------
 
     def checkpoint(self) -> bytes:
-        """Everything needed to continue exactly: values, Adam's moments and step counts, the
-        best iteration so far, counters and the clock."""
+        """Everything needed to continue exactly, on any worker: values, Adam's moments and
+        step counts, the best and the last iteration, the recent losses that dual-buffer's
+        window averages, counters and the clock. The next iteration then renders the same
+        parameters with the same seed as it would have without the interruption."""
         self.flush()
         arrays: dict[str, np.ndarray] = {
             "meta": np.array([self.iteration, self.elapsed, self.best.iteration, self.best.loss,
-                              self.nonfinite_steps, self.skipped_steps, self.clamped],
-                             dtype=np.float64)}
+                              self.nonfinite_steps, self.skipped_steps, self.clamped,
+                              self.last.iteration, self.last.loss], dtype=np.float64),
+            "recent": np.array(self.recent, dtype=np.float64)}
         for n, key in enumerate(self.settings):
             value, _, _, (t, m, v, _) = self.opt.state[key]
             arrays[f"value{n}"] = parameters.flat(value)
             arrays[f"t{n}"] = np.asarray(t, dtype=np.uint32)
             arrays[f"m{n}"] = np.asarray(m, dtype=np.float32)
             arrays[f"v{n}"] = np.asarray(v, dtype=np.float32)
-            if key in self.best.values:
-                arrays[f"best{n}"] = self.best.values[key]
+            for prefix, kept in (("best", self.best), ("last", self.last)):
+                if key in kept.values:
+                    arrays[f"{prefix}{n}"] = kept.values[key]
         buf = io.BytesIO()
         np.savez(buf, keys=np.array(list(self.settings)), **arrays)
         return buf.getvalue()
 
     def restore(self, data: bytes) -> None:
-        z = np.load(io.BytesIO(data))
+        z = np.load(io.BytesIO(data), allow_pickle=False)
         if list(z["keys"]) != list(self.settings):
             raise ValueError("checkpoint holds other parameters than the job")
-        it, elapsed, best_it, best_loss, nonfinite, skipped, clamped = z["meta"].tolist()
+        (it, elapsed, best_it, best_loss, nonfinite, skipped, clamped, last_it,
+         last_loss) = z["meta"].tolist()
         self.iteration, self.elapsed = int(it), float(elapsed)
         self.nonfinite_steps, self.skipped_steps = int(nonfinite), int(skipped)
         self.clamped = int(clamped)
-        best = {}
+        self.recent = z["recent"].tolist()
+        kept: dict[str, dict[str, np.ndarray]] = {"best": {}, "last": {}}
         for n, key in enumerate(self.settings):
             self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])
             value, promoted, lr, (t, m, v, vmax) = self.opt.state[key]
             self.opt.state[key] = (value, promoted, lr,
                                    (type(t)(z[f"t{n}"]), type(m)(z[f"m{n}"]),
                                     type(v)(z[f"v{n}"]), vmax))
-            if f"best{n}" in z:
-                best[key] = z[f"best{n}"]
-        self.best = Best(int(best_it), float(best_loss), best) if best else Best()
+            for prefix in kept:
+                if f"{prefix}{n}" in z:
+                    kept[prefix][key] = z[f"{prefix}{n}"]
+        self.best = Best(int(best_it), float(best_loss), kept["best"]) if kept["best"] else Best()
+        self.last = Best(int(last_it), float(last_loss), kept["last"]) if kept["last"] else Best()
         self._apply()

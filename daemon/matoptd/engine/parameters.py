@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from matopt_api.v1 import matopt_pb2 as pb
+from ..engine_api import SMALL, ParameterInfo
 
 INF = math.inf
 # Adam's default learning rates. A scalar or RGB parameter with a finite range, or optimized in
@@ -39,7 +39,6 @@ CAUTIOUS_LEARNING_RATE = 0.03
 # seed of two diverged; at 0.01 both ended within 1% on base_color, spec_trans and eta.
 ETA_LEARNING_RATE = 0.01
 _MEDIUM = {"albedo", "sigma_t", "sigma_a", "sigma_s", "density"}
-SMALL = 64                     # parameters up to this many components travel inline
 
 # An eta of exactly 1 makes a dielectric interface vanish (no gradient, divisions by eta - 1).
 ETA_MIN = 1.001
@@ -64,7 +63,7 @@ _NON_NEGATIVE = {"radiance", "irradiance", "intensity", "sigma_t", "sigma_a", "s
 @dataclass(frozen=True)
 class Info:
     key: str
-    kind: int
+    kind: str  # one of engine_api.KINDS
     shape: tuple[int, ...]
     lo: float
     hi: float
@@ -99,23 +98,23 @@ def legal_range(key: str) -> tuple[float, float]:
     return -INF, INF
 
 
-def kind_and_shape(key: str, value) -> tuple[int, tuple[int, ...]] | None:
+def kind_and_shape(key: str, value) -> tuple[str, tuple[int, ...]] | None:
     """The API kind of a traversed value, or None when it cannot be optimized."""
     if not (dr.is_diff_v(value) and dr.is_float_v(value)):
         return None  # Python scalars, ScalarVector2u film sizes, integer arrays, 8-bit textures
     if dr.is_tensor_v(value):
         shape = tuple(int(s) for s in value.shape)
-        return (pb.VOLUME_GRID if len(shape) == 4 else pb.TEXTURE), shape
+        return ("volume_grid" if len(shape) == 4 else "texture"), shape
     if dr.is_matrix_v(value):
-        return pb.TRANSFORM, (4, 4)
+        return "transform", (4, 4)
     name = type(value).__name__
     if name.startswith("Color") or (dr.depth_v(value) > 1 and len(value) == 3
                                     and dr.width(value) == 1):
-        return pb.RGB, (3,)
+        return "rgb", (3,)
     width = dr.width(value) * (len(value) if dr.depth_v(value) > 1 else 1)
     if "vertex" in key:
-        return pb.VERTEX_ARRAY, (width,)
-    return (pb.SCALAR, ()) if width == 1 else (pb.VECTOR, (width,))
+        return "vertex_array", (width,)
+    return ("scalar", ()) if width == 1 else ("vector", (width,))
 
 
 def describe(params: mi.SceneParameters) -> list[Info]:
@@ -156,14 +155,14 @@ def default_learning_rate(info: Info) -> float:
     if dielectric_eta(info.key):
         return ETA_LEARNING_RATE
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
-    small = info.kind in (pb.SCALAR, pb.RGB)
+    small = info.kind in ("scalar", "rgb")
     medium = property_name(info.key) in _MEDIUM
     return DEFAULT_LEARNING_RATE if bounded and small and not medium else CAUTIOUS_LEARNING_RATE
 
 
-def to_proto(info: Info, value) -> pb.Parameter:
+def listing(info: Info, value) -> ParameterInfo:
+    """The parameter as the daemon lists it: the value only when it is small."""
     v = flat(value)
-    learning_rate = default_learning_rate(info)
-    return pb.Parameter(key=info.key, kind=info.kind, shape=list(info.shape),
-                        value=v.tolist() if v.size <= SMALL else [], min=info.lo, max=info.hi,
-                        default_learning_rate=learning_rate, discontinuous=info.discontinuous)
+    return ParameterInfo(info.key, info.kind, list(info.shape),
+                         v.tolist() if v.size <= SMALL else [], info.lo, info.hi,
+                         default_learning_rate(info), info.discontinuous)

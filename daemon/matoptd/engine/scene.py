@@ -7,7 +7,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
-from ..errors import InvalidArgument
+from ..engine_api import InvalidInput
 from . import parameters
 
 
@@ -37,7 +37,7 @@ def load(loadable: Path, overrides: dict[str, str], display: str,
         return mi.load_file(str(loadable), optimize=False, **overrides)
     except Exception as exc:  # Mitsuba raises RuntimeError/ValueError with the parser's text
         message = str(exc).replace(str(loadable), display).strip()
-        raise InvalidArgument(f"Mitsuba cannot load '{display}': {message}") from None
+        raise InvalidInput(f"Mitsuba cannot load '{display}': {message}") from None
 
 
 def has_media(scene: mi.Scene) -> bool:

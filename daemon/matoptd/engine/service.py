@@ -1,107 +1,257 @@
-"""The engine's entry points, in API terms: protobuf messages in, protobuf messages out.
+"""``engine_api.Engine`` implemented with Mitsuba: what a worker process runs.
 
-The scheduler calls these on its worker thread only. Files arrive as paths, outgoing images
-leave through ``put_blob(bytes) -> "blobs/{sha256}"``, so the engine knows nothing of the
-store.
+Inputs arrive by digest and are fetched once into the worker's own cache (verified, read-only),
+where a scene's bundle is laid out as links to them; nothing here reads the daemon's data
+directory. A job's ``Optimization`` stays in memory between ``start`` and ``release``.
 """
 
 from __future__ import annotations
 
-import io
+import gc
+import hashlib
+import os
 import posixpath
+import shutil
+import tempfile
 import time
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from matopt_api.v1 import matopt_pb2 as pb
+from .. import engine_api as api
+from . import diagnosis, images, parameters, scene as scenes, scene_export
+from .optimize import Best, Config, Optimization, Reference, Setting
 
-from ..errors import InvalidArgument
-from . import diagnosis, images, parameters, scene as scenes, scene_export, variant
-from .optimize import Config, Optimization, Reference, Setting
-
-PutBlob = Callable[[bytes], str]
 RESULT_SPP = 64  # renders in results are off the clock; enough samples to look at
 
 
-def init(requested_variant: str | None, data_dir: Path) -> tuple[str, str]:
-    variant.configure_environment(data_dir)
-    return variant.select(requested_variant)
+@dataclass
+class Run:
+    """A job's optimization, loaded."""
+
+    opt: Optimization
+    main_xml: Path              # the prepared XML it was loaded from (for the scene export)
+    overrides: dict[str, str]
+    shapes: dict[str, list[int]]
+    kinds: dict[str, str]
 
 
-def load(loadable: Path, overrides: dict[str, str], display: str,
-         keys: list[str] | None = None) -> mi.Scene:
-    return scenes.load(loadable, overrides, display, keys)
+class MitsubaEngine:
+    """One worker's engine. ``cache`` holds fetched blobs and laid-out scenes."""
 
+    def __init__(self, fetch: api.Fetch, cache: Path) -> None:
+        self.fetch = fetch
+        self.cache = Path(cache)
+        (self.cache / "blobs").mkdir(parents=True, exist_ok=True)
+        (self.cache / "scenes").mkdir(parents=True, exist_ok=True)
+        self.runs: dict[str, Run] = {}
+        self._preview: tuple[str, mi.Scene] | None = None  # the last scene rendered
 
-def inspect(scene: mi.Scene) -> tuple[list[pb.Sensor], bool, list[pb.Parameter]]:
-    d = scenes.describe(scene)
-    params = mi.traverse(scene)
-    sensors = [pb.Sensor(index=i, id=sid, width=w, height=h)
-               for i, (sid, w, h) in enumerate(d.sensors)]
-    return sensors, d.has_media, [parameters.to_proto(info, params[info.key])
-                                  for info in d.parameters]
+    # -- inputs -----------------------------------------------------------------------------
 
+    def blob(self, sha256: str) -> Path:
+        """The local, verified, read-only copy of a blob, fetched on first use."""
+        path = self.cache / "blobs" / sha256
+        if path.exists():
+            return path
+        data = self.fetch(sha256)
+        if hashlib.sha256(data).hexdigest() != sha256:
+            raise api.EngineError(f"blob {sha256} arrived corrupted (its content hashes "
+                                  "differently); nothing was loaded from it")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".fetch-")
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o444)
+        os.replace(tmp, path)
+        return path
 
-def _image(put_blob: PutBlob, pixels: np.ndarray, sensor: int, role: str) -> pb.Image:
-    exr, png = images.encode(pixels)
-    return pb.Image(sensor=sensor, role=role, width=pixels.shape[1], height=pixels.shape[0],
-                    exr_blob=put_blob(exr), png_blob=put_blob(png))
+    def layout(self, scene: api.SceneInput) -> Path:
+        """The bundle as a directory of links into the blob cache; returns the main XML.
 
-
-def _decode_values(values: list[pb.ParameterValue], read_blob: Callable[[str], bytes]
-                   ) -> dict[str, np.ndarray]:
-    return {v.key: _array(v, read_blob, v.blob, v.value) for v in values}
-
-
-def render(scene: mi.Scene, request: pb.RenderSceneRequest, put_blob: PutBlob,
-           read_blob: Callable[[str], bytes]) -> list[pb.Image]:
-    """Renders with the scene's own integrator, parameters overridden, then restored."""
-    count = len(scene.sensors())
-    sensors = list(request.sensors) or list(range(count))
-    for s in sensors:
-        if not 0 <= s < count:
-            raise InvalidArgument(f"sensor {s} does not exist: the scene has {count} sensor(s)")
-    params = mi.traverse(scene)
-    overrides = _decode_values(list(request.parameters), read_blob)
-    saved = {}
-    try:
-        for key, v in overrides.items():
-            if key not in params:
-                raise InvalidArgument(f"unknown parameter key '{key}'")
-            if v is None:
-                raise InvalidArgument(f"parameter '{key}' has neither values nor a blob")
-            saved[key] = parameters.flat(params[key])
+        Laid out under a temporary name and renamed into place, so a directory that exists is
+        complete. Files are links to read-only blobs: nothing is ever written through them."""
+        directory = self.cache / "scenes" / scene.key
+        if not directory.exists():
+            tmp = self.cache / "scenes" / f".{scene.key}.{uuid.uuid4().hex[:8]}"
+            for path, sha in scene.files.items():
+                norm = posixpath.normpath(path)
+                if norm.startswith(("/", "../")) or norm == "..":
+                    raise api.InvalidInput(f"bundle path '{path}' leaves the bundle")
+                dest = tmp / norm
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.link(self.blob(sha), dest)
             try:
-                params[key] = parameters.assign(params[key], v)
-            except ValueError as exc:
-                raise InvalidArgument(f"parameter '{key}': {exc}") from None
-        params.update()
-        # A scene without <integrator> renders with Mitsuba's default, the path tracer.
-        integrator = scene.integrator() or mi.load_dict({"type": "path"})
-        out = []
+                os.rename(tmp, directory)
+            except OSError:  # another worker laid it out meanwhile
+                shutil.rmtree(tmp, ignore_errors=True)
+        return directory / scene.main_file
+
+    def load(self, scene: api.SceneInput, keys: list[str] | None = None) -> mi.Scene:
+        return scenes.load(self.layout(scene), scene.overrides, scene.display, keys)
+
+    # -- scene tasks ------------------------------------------------------------------------
+
+    def describe_scene(self, scene: api.SceneInput) -> api.SceneDescription:
+        loaded = self.load(scene)
+        d = scenes.describe(loaded)
+        params = mi.traverse(loaded)
+        return api.SceneDescription(
+            [api.SensorInfo(i, sid, w, h) for i, (sid, w, h) in enumerate(d.sensors)],
+            d.has_media, [parameters.listing(info, params[info.key]) for info in d.parameters])
+
+    def render(self, scene: api.SceneInput, request: api.RenderRequest) -> list[api.Image]:
+        """Renders with the scene's own integrator, parameters overridden, then restored."""
+        if self._preview is None or self._preview[0] != scene.key:
+            self._preview = None
+            self._preview = (scene.key, self.load(scene))
+        loaded = self._preview[1]
+        count = len(loaded.sensors())
+        sensors = request.sensors or list(range(count))
         for s in sensors:
-            img = mi.render(scene, sensor=s, integrator=integrator, seed=request.seed,
-                            spp=request.spp if request.HasField("spp") else 64)
-            out.append(_image(put_blob, np.array(img, dtype=np.float32), s, "render"))
-        return out
-    finally:
-        for key, v in saved.items():
-            params[key] = parameters.assign(params[key], v)
-        params.update()
+            if not 0 <= s < count:
+                raise api.InvalidInput(f"sensor {s} does not exist: the scene has {count} "
+                                       "sensor(s)")
+        params = mi.traverse(loaded)
+        saved = {}
+        try:
+            for key, v in request.values.items():
+                if key not in params:
+                    raise api.InvalidInput(f"unknown parameter key '{key}'")
+                saved[key] = parameters.flat(params[key])
+                try:
+                    params[key] = parameters.assign(params[key], v)
+                except ValueError as exc:
+                    raise api.InvalidInput(f"parameter '{key}': {exc}") from None
+            params.update()
+            # A scene without <integrator> renders with Mitsuba's default, the path tracer.
+            integrator = loaded.integrator() or mi.load_dict({"type": "path"})
+            out = []
+            for s in sensors:
+                img = mi.render(loaded, sensor=s, integrator=integrator, seed=request.seed,
+                                spp=request.spp)
+                out.append(image(np.array(img, dtype=np.float32), s, "render"))
+            return out
+        finally:
+            for key, v in saved.items():
+                params[key] = parameters.assign(params[key], v)
+            params.update()
+
+    def check_references(self, references: list[api.ReferenceInput]) -> None:
+        for r in references:
+            images.read_reference(str(self.blob(r.sha256)), r.name)
+
+    # -- jobs -------------------------------------------------------------------------------
+
+    def start(self, job: str, settings: api.JobSettings, checkpoint: bytes | None
+              ) -> api.Started:
+        """Builds the job's optimization. A scene kept for previews goes first: Mitsuba
+        dispatches a BSDF's or an emitter's virtual call over every live instance in the
+        process, so each scene held makes every job's kernels bigger."""
+        self._preview = None
+        began = time.perf_counter()
+        keys = [p.key for p in settings.parameters]
+        loaded = self.load(settings.scene, keys)
+        notes: list[str] = []
+        refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
+                                              for r in settings.references}, notes)
+        config = Config(loss=settings.loss, iterations=settings.iterations,
+                        min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
+                        cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
+                        clamp=settings.clamp, truth=dict(settings.truth),
+                        image_error_every=settings.image_error_every,
+                        image_error_spp=settings.image_error_spp)
+        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
+                                    for p in settings.parameters], refs, config)
+        skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
+        opt.notes = notes + [f"gradients for: {', '.join(opt.settings)}",
+                             f"sensors rendered: {', '.join(map(str, opt.references))}"
+                             + (f" (not rendered: {', '.join(map(str, skipped))})"
+                                if skipped else "")]
+        if checkpoint is not None:
+            try:
+                opt.restore(checkpoint)
+            except (ValueError, KeyError, OSError) as exc:
+                raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
+        else:
+            opt.elapsed += time.perf_counter() - began
+        listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
+        shapes = {k: list(listed[k].shape) if k in listed else [] for k in opt.settings}
+        kinds = {k: listed[k].kind if k in listed else "vector" for k in opt.settings}
+        self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
+                             shapes, kinds)
+        return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
+                           list(opt.references), opt.notes, shapes, kinds)
+
+    def _run(self, job: str) -> Run:
+        try:
+            return self.runs[job]
+        except KeyError:
+            raise api.EngineError(f"job '{job}' is not loaded on this worker") from None
+
+    def step(self, job: str, n: int) -> api.Progress:
+        run = self._run(job)
+        opt = run.opt
+        records = []
+        done, reason = False, ""
+        for _ in range(max(1, n)):
+            s = opt.step()
+            records.append(api.IterationRecord(
+                s.iteration, opt.elapsed, s.loss,
+                {k: v for k, v in s.values.items() if v.size <= api.SMALL},
+                s.errors, s.image_error))
+            if s.done:
+                done, reason = True, s.stop_reason
+                break
+        # The last step's backward pass is still pending: evaluated now, a checkpoint or an
+        # eviction that follows takes no longer than it should.
+        opt.flush(*(opt.opt[k] for k in opt.settings))
+        return api.Progress(records, done, reason, opt.best.iteration, opt.best.loss,
+                            opt.elapsed, _counters(opt))
+
+    def checkpoint(self, job: str) -> bytes:
+        return self._run(job).opt.checkpoint()
+
+    def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool
+               ) -> api.Finished:
+        """Results for the best and the last iteration run (none before the first), then the
+        diagnosis. Renders in results are off the job's clock."""
+        run = self._run(job)
+        opt = run.opt
+        chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
+        if opt.last.iteration >= 0:
+            chosen.append(("last", opt.last))
+        results = _results(run, chosen)
+        opt.flush()
+        paths: dict[str, list[list[float]]] = {}
+        for record in history:
+            for key, v in record.values.items():
+                paths.setdefault(key, []).append(np.asarray(v).ravel().tolist())
+        notes = diagnosis.diagnose(
+            opt.settings, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
+            opt.skipped_steps,
+            {k: np.array(p) for k, p in paths.items() if len(p) == len(history)})
+        return api.Finished(results, notes, _counters(opt))
+
+    def release(self, job: str) -> None:
+        """Drops the job's run and returns the memory it held: Dr.Jit keeps freed buffers in
+        a cache of its own, which goes back only when asked."""
+        self.runs.pop(job, None)
+        gc.collect()
+        if not self.runs:
+            dr.flush_malloc_cache()
 
 
-def check_reference(path: Path, name: str) -> None:
-    images.read_reference(str(path), name)
+def _counters(opt: Optimization) -> api.Counters:
+    return api.Counters(opt.nonfinite_steps, opt.skipped_steps, opt.clamped)
 
 
-def _array(value: pb.ParameterValue | pb.ParameterSpec, read_blob: Callable[[str], bytes],
-           blob: str, values) -> np.ndarray | None:
-    if blob:
-        return np.load(io.BytesIO(read_blob(blob))).astype(np.float32).ravel()
-    return np.asarray(values, dtype=np.float32) if len(values) else None
+def image(pixels: np.ndarray, sensor: int, role: str, parameter: str = "") -> api.Image:
+    exr, png = images.encode(pixels)
+    return api.Image(sensor, role, pixels.shape[1], pixels.shape[0], exr, png, parameter)
 
 
 def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
@@ -109,145 +259,69 @@ def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
     return key if key in params else None
 
 
-def _references(scene: mi.Scene, spec: pb.JobSpec, paths: dict[int, tuple[Path, str]],
-                notes: list[str]) -> dict[int, Reference]:
-    """Reads each reference and sizes its sensor's film: height from ``spec.resolution`` (or
-    the film's own), width from the reference's aspect ratio. Each sensor keeps its own size.
-    NaN/Inf pixels are masked out of every loss and counted."""
+def _references(scene: mi.Scene, settings: api.JobSettings,
+                files: dict[int, tuple[Path, str]], notes: list[str]) -> dict[int, Reference]:
+    """Reads each reference and sizes its sensor's film: height from ``settings.resolution``
+    (or the film's own), width from the reference's aspect ratio. Each sensor keeps its own
+    size. NaN/Inf pixels are masked out of every loss and counted."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
     refs = {}
-    for index, (path, name) in paths.items():
-        image = images.read_reference(str(path), name)
+    for index, (path, name) in sorted(files.items()):
+        picture = images.read_reference(str(path), name)
         film = sensors[index].film().crop_size()
-        height = spec.resolution or int(film[1])
-        width = max(1, round(height * image.shape[1] / image.shape[0]))
+        height = settings.resolution or int(film[1])
+        width = max(1, round(height * picture.shape[1] / picture.shape[0]))
         if (width, height) != (int(film[0]), int(film[1])):
             key = _film_key(params, sensors[index])
             if key is None:
-                raise InvalidArgument(f"sensor {index}'s film cannot be resized to "
-                                      f"{width}x{height} for reference '{name}'")
+                raise api.InvalidInput(f"sensor {index}'s film cannot be resized to "
+                                       f"{width}x{height} for reference '{name}'")
             params[key] = mi.ScalarVector2u(width, height)
             params.update()
             notes.append(f"sensor {index} renders {width}x{height} (film was "
                          f"{int(film[0])}x{int(film[1])}) to follow reference '{name}'")
-        image = images.fit(image, (width, height))
-        valid = np.isfinite(image).all(axis=2, keepdims=True)
+        picture = images.fit(picture, (width, height))
+        valid = np.isfinite(picture).all(axis=2, keepdims=True)
         if not valid.all():
             notes.append(f"reference '{name}': {int((~valid).sum())} NaN/Inf pixel(s) masked "
                          "out of the loss")
-        weight = np.broadcast_to(valid, image.shape).astype(np.float32)
-        refs[index] = Reference(mi.TensorXf(np.where(weight > 0, image, 0.0)),
+        weight = np.broadcast_to(valid, picture.shape).astype(np.float32)
+        refs[index] = Reference(mi.TensorXf(np.where(weight > 0, picture, 0.0)),
                                 None if valid.all() else mi.TensorXf(weight))
     return refs
 
 
-def start_job(scene: mi.Scene, spec: pb.JobSpec, reference_paths: dict[int, tuple[Path, str]],
-              read_blob: Callable[[str], bytes], checkpoint: bytes | None) -> Optimization:
-    """Builds the optimization of a job (spec already validated and defaulted)."""
-    began = time.perf_counter()
-    notes: list[str] = []
-    refs = _references(scene, spec, reference_paths, notes)
-    settings = [Setting(p.key, p.learning_rate, p.min, p.max,
-                        _array(p, read_blob, p.initial_blob, p.initial_value))
-                for p in spec.parameters]
-    truth = {v.key: _array(v, read_blob, v.blob, v.value) for v in spec.ground_truth}
-    config = Config(loss=spec.loss, iterations=spec.iterations, min_error=spec.min_error,
-                    spp=spec.spp, seed=spec.seed, cosine=spec.schedule != pb.CONSTANT,
-                    step_per_sensor=spec.sensor_mode == pb.STEP_PER_SENSOR, clamp=spec.clamp,
-                    truth={k: v for k, v in truth.items() if v is not None},
-                    image_error_every=spec.image_error_every,
-                    image_error_spp=spec.image_error_spp or 64)
-    opt = Optimization(scene, settings, refs, config)
-    opt.notes = notes + [f"gradients for: {', '.join(opt.settings)}",
-                         f"sensors rendered: {', '.join(map(str, opt.references))}"
-                         + (f" (not rendered: {', '.join(map(str, skipped))})"
-                            if (skipped := [i for i in range(len(scene.sensors()))
-                                            if i not in opt.references]) else "")]
-    if checkpoint is not None:
-        opt.restore(checkpoint)
-    else:
-        opt.elapsed += time.perf_counter() - began
-    return opt
-
-
-def diagnose(opt: Optimization, values: dict[str, np.ndarray],
-             history: list[pb.IterationRecord]) -> list[str]:
-    opt.flush()
-    paths: dict[str, list[list[float]]] = {}
-    for record in history:
-        for v in record.parameters:
-            if v.value:
-                paths.setdefault(v.key, []).append(list(v.value))
-    return diagnosis.diagnose(opt.settings, values, [h.loss for h in history],
-                              opt.nonfinite_steps, opt.skipped_steps,
-                              {k: np.array(p) for k, p in paths.items() if len(p) == len(history)})
-
-
-def values_to_proto(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
-                    put_blob: PutBlob | None) -> list[pb.ParameterValue]:
-    """Small values inline; large ones as .npy blobs (or left out when put_blob is None)."""
-    out = []
-    for key, v in values.items():
-        if v.size <= parameters.SMALL:
-            out.append(pb.ParameterValue(key=key, value=v.tolist(), shape=shapes[key]))
-        elif put_blob is not None:
-            buf = io.BytesIO()
-            np.save(buf, v.reshape(shapes[key]) if shapes[key] else v)
-            out.append(pb.ParameterValue(key=key, shape=shapes[key], blob=put_blob(buf.getvalue())))
-    return out
-
-
-def _scene_bundle(opt: Optimization, scene: pb.Scene, loadable: Path,
-                  values: dict[str, np.ndarray], shapes: dict[str, list[int]], put_blob: PutBlob,
-                  res: pb.JobResult) -> None:
-    """The optimized scene, next to the original main XML, with the bundle it needs."""
-    with opt.holding(values) as held:
-        files, unplaced = scene_export.optimized_scene(loadable, dict(scene.overrides), held,
-                                                       values, shapes)
-    base = posixpath.dirname(scene.main_file)
-    new = {posixpath.join(base, path): put_blob(data) for path, data in files.items()}
-    res.scene_files.extend(pb.BundleFile(path=f.path, sha256=f.sha256) for f in scene.files
-                           if f.path not in new)
-    res.scene_files.extend(pb.BundleFile(path=p, sha256=b.removeprefix("blobs/"))
-                           for p, b in new.items())
-    res.scene_file = posixpath.join(base, "scene_optimized.xml")
-    res.unplaced_parameters.extend(unplaced)
-
-
-def results(opt: Optimization, job: str,
-            chosen: list[tuple[int, int, float, dict[str, np.ndarray]]],
-            shapes: dict[str, list[int]], kinds: dict[str, int],
-            put_blob: PutBlob, scene: pb.Scene, loadable: Path) -> list[pb.JobResult]:
-    """For each chosen (which, iteration, loss, values): the parameters, the renders per sensor
-    (initial, optimized, reference, |optimized - reference|) and optimized textures as images.
-    Initial and reference images are made once and shared."""
+def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
+    """For each chosen iteration: the renders per sensor (initial, optimized, reference,
+    |optimized - reference|), optimized textures as images, and the optimized scene. Initial
+    and reference images are made once and shared."""
+    opt = run.opt
     spp = max(RESULT_SPP, opt.spp)
     shared = {}
     for sensor, ref in opt.references.items():
         reference = np.array(ref.image, dtype=np.float32)
-        shared[sensor] = (reference, [
-            _image(put_blob, opt.render(opt.initial, sensor, spp), sensor, "initial"),
-            _image(put_blob, reference, sensor, "reference")])
-    initial = values_to_proto(opt.initial, shapes, put_blob)
+        shared[sensor] = (reference, [image(opt.render(opt.initial, sensor, spp), sensor,
+                                            "initial"),
+                                      image(reference, sensor, "reference")])
     out = []
-    for which, iteration, loss, values in chosen:
-        res = pb.JobResult(job=job, which=which, iteration=iteration, loss=loss,
-                           parameters=values_to_proto(values, shapes, put_blob),
-                           initial_parameters=initial)
+    for which, it in chosen:
+        images_ = []
         for sensor, (reference, (first, ref_image)) in shared.items():
-            optimized = opt.render(values, sensor, spp)
+            optimized = opt.render(it.values, sensor, spp)
             error = np.abs(optimized - reference) * opt.references[sensor].mask()
-            res.images.extend([first, _image(put_blob, optimized, sensor, "optimized"),
-                               ref_image, _image(put_blob, error, sensor, "error")])
-        for key, v in values.items():
-            if kinds.get(key) == pb.TEXTURE and len(shapes[key]) == 3:
-                texture = v.reshape(shapes[key])
+            images_ += [first, image(optimized, sensor, "optimized"), ref_image,
+                        image(error, sensor, "error")]
+        for key, v in it.values.items():
+            shape = run.shapes[key]
+            if run.kinds.get(key) == "texture" and len(shape) == 3:
+                texture = v.reshape(shape)
                 if texture.shape[2] == 1:
                     texture = np.repeat(texture, 3, axis=2)
-                image = _image(put_blob, texture[..., :3], 0, "texture")
-                image.parameter = key
-                res.images.append(image)
-        _scene_bundle(opt, scene, loadable, values, shapes, put_blob, res)
-        out.append(res)
+                images_.append(image(texture[..., :3], 0, "texture", key))
+        with opt.holding(it.values) as held:
+            files, unplaced = scene_export.optimized_scene(run.main_xml, run.overrides, held,
+                                                           it.values, run.shapes)
+        out.append(api.Result(which, it.iteration, it.loss, it.values, opt.initial, images_,
+                              files, "scene_optimized.xml", unplaced))
     return out

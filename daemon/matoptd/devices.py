@@ -1,0 +1,125 @@
+"""What the workers run on, decided without importing Dr.Jit: CUDA devices (from nvidia-smi),
+CPU cores to split between CPU workers, the libLLVM Dr.Jit's CPU backend should load, and the
+environment a worker starts with."""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where one worker runs: a CUDA device (``cuda`` is its index as CUDA_VISIBLE_DEVICES
+    takes it) or a set of CPU cores, rendering with ``threads`` threads."""
+
+    cuda: str | None
+    cores: tuple[int, ...]
+    threads: int
+
+    def describe(self) -> str:
+        if self.cuda is not None:
+            return f"CUDA device {self.cuda}"
+        return f"CPU: {self.threads} thread(s) on cores {core_ranges(self.cores)}"
+
+
+def cuda_devices() -> list[str]:
+    """Indices of the NVIDIA GPUs nvidia-smi lists (none when it is absent or fails)."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=index", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return []
+    if out.returncode != 0:
+        return []
+    return [line.strip() for line in out.stdout.splitlines() if line.strip().isdigit()]
+
+
+def cpu_cores() -> list[int]:
+    return sorted(os.sched_getaffinity(0))
+
+
+def split_cores(cores: list[int], workers: int) -> list[tuple[int, ...]]:
+    """``workers`` disjoint, contiguous sets of cores, as even as they can be; with more
+    workers than cores, cores are shared round-robin."""
+    if workers <= len(cores):
+        size, extra = divmod(len(cores), workers)
+        out, at = [], 0
+        for i in range(workers):
+            n = size + (i < extra)
+            out.append(tuple(cores[at:at + n]))
+            at += n
+        return out
+    return [(cores[i % len(cores)],) for i in range(workers)]
+
+
+def placements(devices: list[str] | None, workers: int | None, variant: str | None
+               ) -> list[Placement]:
+    """One worker per CUDA device (``devices``, else every one nvidia-smi lists), unless CPU
+    workers are asked for (``workers``, or an LLVM ``variant``) or there is no GPU: then
+    ``workers`` (default 1) CPU workers with the cores split between them."""
+    cores = cpu_cores()
+    cpu_asked = workers is not None or (variant or "").startswith(("llvm", "scalar"))
+    if devices is None and not cpu_asked:
+        devices = cuda_devices()
+    if devices and not cpu_asked:
+        return [Placement(d, tuple(cores), len(cores)) for d in devices]
+    return [Placement(None, c, len(c)) for c in split_cores(cores, workers or 1)]
+
+
+def find_libllvm() -> str | None:
+    """The newest system libLLVM with major version >= 16, or None. Dr.Jit 1.5 aborts on LLVM
+    14/15 ("Cannot select ... fminimum"), and left alone it may pick one of those."""
+    candidates = []
+    for pattern in ("/usr/lib/*/libLLVM*.so*", "/usr/lib/llvm-*/lib/libLLVM*.so*",
+                    "/usr/lib64/libLLVM*.so*", "/usr/local/lib/libLLVM*.so*"):
+        for path in glob.glob(pattern):
+            m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(path))
+            if m and int(m.group(1)) >= 16:
+                candidates.append((int(m.group(1)), path))
+    return max(candidates)[1] if candidates else None
+
+
+def worker_environment(data_dir: Path, placement: Placement) -> dict[str, str]:
+    """The environment of a worker process. Dr.Jit reads its cache dir and libLLVM once, at
+    import. The kernel cache goes under the data dir (a daemon should not share ``~/.drjit``
+    with a user's scripts); a CUDA worker sees only its own device."""
+    env = dict(os.environ)
+    env.setdefault("DRJIT_CACHE_DIR", str(Path(data_dir) / "kernel-cache"))
+    if "DRJIT_LIBLLVM_PATH" not in env:
+        llvm = find_libllvm()
+        if llvm:
+            env["DRJIT_LIBLLVM_PATH"] = llvm
+    if placement.cuda is not None:
+        env["CUDA_VISIBLE_DEVICES"] = placement.cuda
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def total_memory() -> int:
+    """Physical memory in bytes."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def parse_size(text: str) -> int:
+    """'8G', '512M', '1.5GiB', '1000000' -> bytes."""
+    m = re.fullmatch(r"\s*([0-9.]+)\s*([kKmMgGtT]?)(?:i?[bB])?\s*", text)
+    if not m:
+        raise ValueError(f"'{text}' is not a size (e.g. 8G, 512M)")
+    return int(float(m.group(1)) * 1024 ** " KMGT".index((m.group(2) or " ").upper()))
+
+
+def core_ranges(cores) -> str:
+    """(0, 1, 2, 5) -> '0-2,5'."""
+    parts, start = [], None
+    for i, c in enumerate(cores):
+        if start is None:
+            start = c
+        if i + 1 == len(cores) or cores[i + 1] != c + 1:
+            parts.append(f"{start}-{c}" if c != start else f"{c}")
+            start = None
+    return ",".join(parts)

@@ -1,0 +1,267 @@
+"""The one interface between the daemon and a renderer: what a worker process can be asked.
+
+The daemon's own process (gRPC, store, scheduler) never imports Mitsuba or Dr.Jit. Workers do,
+each on its own device, and this module is all the two sides share: plain data in and out
+(dataclasses, numbers, strings, bytes, numpy arrays), no protobuf messages, no gRPC errors,
+nothing about users or the store. Inputs cross it as content, or as a SHA-256 digest that the
+worker resolves with the ``fetch`` function it was given, never as a path into the daemon's
+data directory: a worker may run on another machine.
+
+A job's run lives on one worker between ``start`` and ``release``: ``step`` runs iterations on
+the state it holds (nothing is shipped per iteration), ``checkpoint`` returns everything
+needed to continue it elsewhere, bit for bit: ``start(..., checkpoint)`` on any worker goes on
+with the same losses it would have had.
+
+    engine.start(job, settings, checkpoint=None) -> Started
+    engine.step(job, n)                          -> Progress     (n iterations, records)
+    engine.checkpoint(job)                       -> bytes
+    engine.finish(job, history, cancelled)       -> Finished     (results, diagnosis)
+    engine.release(job)                          -> None         (memory freed)
+    engine.describe_scene(scene)                 -> SceneDescription
+    engine.render(scene, request)                -> list[Image]
+    engine.check_references(references)          -> None
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+Fetch = Callable[[str], bytes]  # sha256 -> the blob's bytes (raises KeyError when unknown)
+
+# Parameter kinds, as the API names them (lower case of ParameterKind).
+KINDS = ("scalar", "rgb", "texture", "volume_grid", "vertex_array", "transform", "vector")
+# Losses, as the API names them (lower case of Loss).
+LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_error",
+          "multiscale_mse")
+
+
+# -- errors ---------------------------------------------------------------------------------
+
+class EngineError(Exception):
+    """A request the engine could not carry out; the message is for the user as it stands."""
+
+
+class InvalidInput(EngineError):
+    """The caller's input is at fault: an XML Mitsuba rejects, an unreadable image, a
+    parameter value of the wrong size. The daemon answers INVALID_ARGUMENT."""
+
+
+class OutOfMemory(EngineError):
+    """The device or the worker ran out of memory for this request."""
+
+
+# -- scenes ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SceneInput:
+    """A scene bundle by content. ``files`` maps bundle paths to digests and includes
+    ``main_file``, the XML Mitsuba loads (already prepared by the daemon: stable ids, float
+    textures). ``key`` names this exact content, so a worker can keep what it laid out."""
+
+    key: str
+    main_file: str
+    files: dict[str, str]
+    overrides: dict[str, str]
+    display: str  # the user's name for the scene, for messages
+
+
+@dataclass
+class SensorInfo:
+    index: int
+    id: str
+    width: int
+    height: int
+
+
+@dataclass
+class ParameterInfo:
+    """A differentiable parameter: its kind (one of KINDS), shape, current value (when it has at
+    most ``SMALL`` components), legal range and default learning rate."""
+
+    key: str
+    kind: str
+    shape: list[int]
+    value: list[float]
+    lo: float
+    hi: float
+    learning_rate: float
+    discontinuous: bool
+
+
+SMALL = 64  # parameters up to this many components travel inline in records and listings
+
+
+@dataclass
+class SceneDescription:
+    sensors: list[SensorInfo]
+    has_media: bool
+    parameters: list[ParameterInfo]
+
+
+@dataclass
+class RenderRequest:
+    """A preview or synthetic reference: the scene's own integrator, ``values`` instead of the
+    scene's for the keys given (flat, Mitsuba's order), restored afterwards."""
+
+    values: dict[str, np.ndarray]
+    spp: int
+    sensors: list[int]  # empty: all
+    seed: int
+
+
+@dataclass
+class Image:
+    """A rendered or decoded image: linear OpenEXR and 8-bit sRGB PNG bytes. ``role`` is
+    "render", "initial", "optimized", "reference", "error" or "texture" (then ``parameter``
+    names the texture)."""
+
+    sensor: int
+    role: str
+    width: int
+    height: int
+    exr: bytes
+    png: bytes
+    parameter: str = ""
+
+
+# -- jobs -----------------------------------------------------------------------------------
+
+@dataclass
+class ReferenceInput:
+    sensor: int
+    sha256: str  # PNG/JPEG (sRGB) or OpenEXR (linear)
+    name: str    # the user's file name, for messages
+
+
+@dataclass
+class ParameterSetting:
+    """One parameter to optimize, validated and defaulted by the daemon."""
+
+    key: str
+    learning_rate: float
+    lo: float
+    hi: float
+    initial: np.ndarray | None = None  # flat; None: the scene's value
+
+
+@dataclass
+class JobSettings:
+    scene: SceneInput
+    references: list[ReferenceInput]
+    parameters: list[ParameterSetting]
+    loss: str = "mse"            # one of LOSSES
+    iterations: int = 100
+    min_error: float = 0.001
+    spp: int = 16
+    seed: int = 0
+    cosine: bool = True          # learning rates decay along a half cosine to a tenth
+    step_per_sensor: bool = False
+    clamp: bool = False
+    resolution: int = 0          # film height (0: the scene's); widths follow each reference
+    truth: dict[str, np.ndarray] = field(default_factory=dict)  # flat values, for errors
+    image_error_every: int = 0
+    image_error_spp: int = 64
+
+
+@dataclass
+class Started:
+    """A job's run, loaded. ``iteration`` is where it goes on (0, or the checkpoint's)."""
+
+    iteration: int
+    integrator: str
+    integrator_reason: str
+    sensors: list[int]           # the sensors it renders (those with a reference)
+    notes: list[str]
+    shapes: dict[str, list[int]]  # of every optimized parameter
+    kinds: dict[str, str]
+
+
+@dataclass
+class IterationRecord:
+    """Iteration i: the loss of the parameters theta_i, and theta_i itself (parameters with at
+    most SMALL components). ``seconds``: optimizing time since the job began."""
+
+    iteration: int
+    seconds: float
+    loss: float
+    values: dict[str, np.ndarray]
+    errors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    # ^ with ground truth: (max |v - t|, rmse, rmse / rms(t)) per parameter
+    image_error: float | None = None
+
+
+@dataclass
+class Counters:
+    """How often the numerical guards acted, so far."""
+
+    nonfinite_gradient_steps: int = 0  # steps with NaN/Inf gradient components (zeroed)
+    skipped_steps: int = 0             # steps skipped because the loss was NaN/Inf
+    clamped_components: int = 0        # components held at their range after a step
+
+
+@dataclass
+class Progress:
+    records: list[IterationRecord]
+    done: bool               # ran all iterations or reached min_error
+    stop_reason: str         # "iterations" or "min_error" once done
+    best_iteration: int      # -1 before there is one
+    best_loss: float
+    seconds: float           # optimizing time so far
+    counters: Counters
+
+
+@dataclass
+class Result:
+    """The parameters of one iteration (``which``: "best" or "last") with the renders they give,
+    and the optimized scene as files next to the original main XML."""
+
+    which: str
+    iteration: int
+    loss: float
+    values: dict[str, np.ndarray]           # flat
+    initial_values: dict[str, np.ndarray]
+    images: list[Image]
+    scene_files: dict[str, bytes]           # new files, paths relative to the main XML's folder
+    scene_file: str                         # the optimized XML among them
+    unplaced: list[str]                     # keys the XML could not be made to hold
+
+
+@dataclass
+class Finished:
+    results: list[Result]
+    notes: list[str]  # the diagnosis: what went wrong when the job did not converge
+    counters: Counters
+
+
+# -- the interface --------------------------------------------------------------------------
+
+class Engine(Protocol):
+    """What a worker does. One call at a time; a job's calls go to the worker that started it."""
+
+    def describe_scene(self, scene: SceneInput) -> SceneDescription:
+        """Loads the scene and lists its sensors and differentiable parameters."""
+
+    def render(self, scene: SceneInput, request: RenderRequest) -> list[Image]:
+        """Renders with the scene's own integrator (a preview or a synthetic reference)."""
+
+    def check_references(self, references: list[ReferenceInput]) -> None:
+        """Raises InvalidInput naming the first reference that is not a readable image."""
+
+    def start(self, job: str, settings: JobSettings, checkpoint: bytes | None) -> Started:
+        """Loads a job's run (from a checkpoint when given) and holds it until ``release``."""
+
+    def step(self, job: str, n: int) -> Progress:
+        """Runs up to ``n`` iterations (fewer when the job is done)."""
+
+    def checkpoint(self, job: str) -> bytes:
+        """Everything needed to continue exactly: values, Adam's state, best, clock."""
+
+    def finish(self, job: str, history: list[IterationRecord], cancelled: bool) -> Finished:
+        """The job's results (best, and last unless it was cancelled before a step returned)
+        and its diagnosis, from its history as the daemon recorded it."""
+
+    def release(self, job: str) -> None:
+        """Forgets the job's run and returns its memory."""

@@ -1,0 +1,618 @@
+"""Carrying out the scheduler's decisions: one lane (a thread) per worker process.
+
+A lane starts its worker, then loops: ask the scheduler what the worker does next, do it
+through the engine interface (``engine_api``, called in the worker process), record what came
+of it in the store and tell the job's watchers. When the worker is lost (it died, exceeded its
+memory limit, or stopped answering), the lane settles what that costs (the job that was
+running is retried once from its checkpoint; a second loss fails it with a message saying
+what happened), starts a fresh process and goes on. Other workers and the API never wait.
+
+Handlers reach jobs through the methods of ``Runner``: they change state (in the scheduler and
+the store) and return; the only thing a handler waits on a worker for is a scene task it
+asked for (``task``). Status calls (GetJob, ListJobs, WatchJob) never reach a worker.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from google.protobuf.timestamp_pb2 import Timestamp
+
+from matopt_api.v1 import matopt_pb2 as pb
+
+from . import convert, engine_api as api
+from .errors import FailedPrecondition, Internal, InvalidArgument, NotFound, \
+    ResourceExhausted, Unavailable, UserError
+from .scheduler import Action, Scheduler
+from .store import Store
+from .workers import CallFailed, Worker, WorkerLost
+
+log = logging.getLogger("matoptd.runner")
+
+FINAL = (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED)
+CHECKPOINT_ITERATIONS = 10  # a lost worker costs a job at most this many iterations...
+CHECKPOINT_SECONDS = 2.0    # ...or this much time, whichever is more
+CANCEL_GRACE_S = 3.0        # a cancel inside a long iteration stops the worker after this
+SHUTDOWN_GRACE_S = 10.0     # on shutdown, an iteration running longer is cut off
+RESTART_DELAYS_S = (0.0, 1.0, 5.0, 30.0)  # between failed restarts of a worker
+WATCH_QUEUE = 10000
+MONITOR_PERIOD_S = 0.1
+
+
+def now() -> Timestamp:
+    ts = Timestamp()
+    ts.GetCurrentTime()
+    return ts
+
+
+class RemoteEngine:
+    """The engine interface of one worker for one action: ``engine.render(...)`` is a call in
+    the worker process, under the watchdog's deadline, its failures in the daemon's terms."""
+
+    def __init__(self, worker: Worker, timeout: float) -> None:
+        self._worker, self._timeout = worker, timeout
+
+    def __getattr__(self, method: str) -> Callable[..., Any]:
+        def call(*args: Any) -> Any:
+            try:
+                return self._worker.call(method, *args, timeout=self._timeout)
+            except CallFailed as exc:
+                raise user_error(exc) from None
+        return call
+
+
+def user_error(exc: CallFailed) -> Exception:
+    if exc.kind == "invalid":
+        return InvalidArgument(str(exc))
+    if exc.kind == "memory":
+        return ResourceExhausted(f"out of memory: {exc}")
+    if exc.kind == "engine":
+        return FailedPrecondition(str(exc))
+    return Internal(f"the renderer failed: {exc}")
+
+
+@dataclass
+class _Watchers:
+    queues: list[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = field(default_factory=list)
+
+
+class Runner:
+    def __init__(self, store: Store, workers: list[Worker], watchdog: float,
+                 slice_seconds: float | None = None) -> None:
+        self.store = store
+        self.workers = {w.name: w for w in workers}
+        self.watchdog = watchdog
+        self.scheduler = Scheduler(**({"slice_seconds": slice_seconds}
+                                      if slice_seconds is not None else {}))
+        for w in workers:
+            self.scheduler.add_worker(w.name)
+        self.lock = threading.RLock()
+        self.wake = threading.Condition(self.lock)
+        self.stopping = False
+        self._lanes: list[threading.Thread] = []
+        self._first_start: dict[str, concurrent.futures.Future] = {}
+        self._watchers: dict[str, _Watchers] = collections.defaultdict(_Watchers)
+        self._shapes: dict[str, dict[str, list[int]]] = {}
+        self._checkpointed: dict[str, tuple[int, float]] = {}  # iteration, time
+        self._cancelled_at: dict[str, float] = {}
+        self._monitor = threading.Thread(target=self._watch_workers, name="matoptd-monitor",
+                                         daemon=True)
+        self._recover()
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> list[str]:
+        """Starts every worker (in its lane) and waits for each to be ready or to fail;
+        returns why the ones that failed did. The lanes of failed workers end."""
+        for w in self.workers.values():
+            self._first_start[w.name] = concurrent.futures.Future()
+            lane = threading.Thread(target=self._lane, args=(w,), name=f"lane-{w.name}",
+                                    daemon=True)
+            self._lanes.append(lane)
+            lane.start()
+        failures = [f.result() for f in self._first_start.values()]
+        if self.ready:
+            self._monitor.start()
+        return [f for f in failures if f]
+
+    @property
+    def ready(self) -> bool:
+        return any(w.state in ("idle", "busy") for w in self.workers.values())
+
+    def stop(self) -> None:
+        """Finishes the iterations in flight (cutting off any that runs past a grace period),
+        checkpoints loaded jobs, marks running ones INTERRUPTED and stops the workers."""
+        with self.lock:
+            self.stopping = True
+            self.wake.notify_all()
+        deadline = time.monotonic() + SHUTDOWN_GRACE_S
+        for lane in self._lanes:
+            lane.join(max(0.0, deadline - time.monotonic()))
+        for w in self.workers.values():
+            if w.state == "busy":
+                w.kill("was stopped: the daemon shut down during a long iteration", "stopped")
+        for lane in self._lanes:
+            lane.join()
+        with self.lock:
+            for job in self.store.list_jobs(None, 0, 1 << 30, (pb.RUNNING,)):
+                self._interrupt(job, "the daemon was shut down")
+
+    def _recover(self) -> None:
+        """After a restart: jobs that were running when the daemon stopped are INTERRUPTED
+        (ResumeJob continues them); queued ones run again."""
+        for job in self.store.list_jobs(None, 0, 1 << 30, (pb.RUNNING, pb.QUEUED)):
+            if job.state == pb.RUNNING:
+                self._interrupt(job, "the daemon stopped while the job ran")
+            else:
+                self.scheduler.add_job(job.name, job.owner,
+                                       started=self.store.has_checkpoint(job.name))
+
+    def _interrupt(self, job: pb.Job, why: str) -> None:
+        cp = self._checkpointed.get(job.name)
+        job.state = pb.INTERRUPTED
+        job.stop_reason = (f"{why}; resume continues from the checkpoint at iteration {cp[0]}"
+                           if cp else why)
+        self._save(job)
+
+    # -- what handlers call -----------------------------------------------------------------
+
+    def submit(self, job: pb.Job) -> None:
+        with self.lock:
+            self.scheduler.add_job(job.name, job.owner)
+            self.wake.notify_all()
+
+    async def task(self, fn: Callable[[RemoteEngine], Any]) -> Any:
+        """Runs ``fn(engine)`` on the next free worker, before any job's next iteration."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        with self.lock:
+            if self.stopping:
+                raise Unavailable("the daemon is shutting down")
+            if not any(w.state != "failed" for w in self.workers.values()):
+                raise Unavailable("no renderer worker is running")
+            self.scheduler.add_task((fn, fut))
+            self.wake.notify_all()
+        return await asyncio.wrap_future(fut)
+
+    def pause(self, owner: str, name: str) -> pb.Job:
+        with self.lock:
+            job = self.store.get_job(name, owner)
+            if job.state in (pb.QUEUED, pb.RUNNING):
+                if self.scheduler.pause(name):
+                    job.state = pb.PAUSED
+                    self._save(job)
+                self.wake.notify_all()
+            elif job.state != pb.PAUSED:
+                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
+                                         "queued or running job can be paused")
+            return job
+
+    def resume(self, owner: str, name: str) -> pb.Job:
+        with self.lock:
+            job = self.store.get_job(name, owner)
+            if job.state in (pb.QUEUED, pb.RUNNING):
+                self.scheduler.resume(name)  # a pending pause is withdrawn
+                return job
+            if job.state not in (pb.PAUSED, pb.INTERRUPTED):
+                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
+                                         "paused or interrupted job can be resumed")
+            if name in self.scheduler.jobs:
+                self.scheduler.resume(name)
+            else:
+                self.scheduler.add_job(name, job.owner, started=self.store.has_checkpoint(name))
+            job.state, job.resumed_from = pb.QUEUED, "pending"  # the load says from where
+            self._save(job)
+            self.wake.notify_all()
+            return job
+
+    def cancel(self, owner: str, name: str) -> pb.Job:
+        with self.lock:
+            job = self.store.get_job(name, owner)
+            if job.state in FINAL:
+                raise FailedPrecondition(f"job '{name}' already ended "
+                                         f"({pb.State.Name(job.state)})")
+            if name not in self.scheduler.jobs:  # paused or interrupted, not loaded
+                self.scheduler.add_job(name, job.owner, paused=True,
+                                       started=self.store.has_checkpoint(name))
+            if self.scheduler.cancel(name):
+                job.state, job.stop_reason = pb.CANCELLED, "cancelled"
+                self._save(job)
+            else:
+                self._cancelled_at[name] = time.monotonic()
+                self.wake.notify_all()
+            return job
+
+    def delete(self, owner: str, name: str) -> None:
+        with self.lock:
+            job = self.store.get_job(name, owner)
+            sched = self.scheduler.jobs.get(name)
+            if job.state == pb.RUNNING or (sched and (sched.busy or sched.worker)):
+                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: cancel "
+                                         "it before deleting it")
+            self.scheduler.remove(name)
+            self.store.delete_job(name)
+
+    def worker_listing(self, user: str) -> list[pb.Worker]:
+        """The workers as GetServerInfo shows them: the caller's own jobs by name."""
+        states = {"starting": pb.WORKER_STARTING, "idle": pb.WORKER_IDLE,
+                  "busy": pb.WORKER_BUSY, "restarting": pb.WORKER_RESTARTING,
+                  "failed": pb.WORKER_FAILED}
+        out = []
+        with self.lock:
+            for w in self.workers.values():
+                loaded = list(self.scheduler.workers[w.name].resident)
+                mine = [j for j in loaded if self.scheduler.jobs[j].user == user]
+                out.append(pb.Worker(
+                    name=w.name, state=states[w.state], variant=w.info.get("variant", ""),
+                    device=w.info.get("device", w.placement.describe()),
+                    host=w.info.get("host", ""), pid=w.pid, jobs=mine, job_count=len(loaded),
+                    restarts=w.restarts, last_exit=w.last_exit, memory_bytes=w.memory(),
+                    memory_limit_bytes=w.memory_limit,
+                    threads=w.info.get("threads", w.placement.threads)))
+        return out
+
+    # -- watching ---------------------------------------------------------------------------
+
+    def subscribe(self, name: str) -> asyncio.Queue:
+        q: asyncio.Queue = asyncio.Queue(maxsize=WATCH_QUEUE)
+        with self.lock:
+            self._watchers[name].queues.append((asyncio.get_running_loop(), q))
+        return q
+
+    def unsubscribe(self, name: str, q: asyncio.Queue) -> None:
+        with self.lock:
+            w = self._watchers.get(name)
+            if w:
+                w.queues = [(lp, x) for lp, x in w.queues if x is not q]
+                if not w.queues:
+                    del self._watchers[name]
+
+    def _publish(self, name: str, events: list[pb.JobEvent]) -> None:
+        """Hands events to every watcher: one wake-up per event loop, not per watcher."""
+        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Queue]] = {}
+        with self.lock:
+            for loop, q in self._watchers.get(name, _Watchers()).queues:
+                by_loop.setdefault(loop, []).append(q)
+        for loop, queues in by_loop.items():
+            try:
+                loop.call_soon_threadsafe(_offer, queues, events)
+            except RuntimeError:  # that loop is closed: its watchers are gone
+                pass
+
+    def _save(self, job: pb.Job) -> None:
+        job.update_time.CopyFrom(now())
+        self.store.put_job(job)
+        self._publish(job.name, [pb.JobEvent(job=job)])
+
+    # -- lanes ------------------------------------------------------------------------------
+
+    def _lane(self, w: Worker) -> None:
+        first = self._first_start[w.name]
+        try:
+            w.start()
+        except WorkerLost as lost:
+            w.state = "failed"
+            first.set_result(f"{w.name} ({w.placement.describe()}): {lost.reason}")
+            return
+        first.set_result("")
+        with self.lock:
+            self.scheduler.worker_ready(w.name)
+            self.wake.notify_all()
+        while True:
+            action = self._next(w)
+            if action is None:
+                break
+            try:
+                self._do(w, action)
+            except WorkerLost as lost:
+                self._settle(w, action, lost)
+                if self.stopping or not self._restart(w):
+                    return
+        self._close(w)
+
+    def _next(self, w: Worker) -> Action | None:
+        with self.lock:
+            while not self.stopping:
+                action = self.scheduler.next(w.name)
+                if action is not None:
+                    return action
+                self.wake.wait(1.0)
+        return None
+
+    def _done(self, action: Action, iterations: int = 0, finished: bool = False) -> None:
+        with self.lock:
+            self.scheduler.done(action, iterations, finished)
+            self.wake.notify_all()
+
+    def _timeout(self, action: Action) -> float:
+        """The watchdog: a call is hung when it runs far past what its job's pace predicts.
+        A load or a first iteration (kernels to compile), a scene task or the results have no
+        pace yet and get five times the base."""
+        job = self.scheduler.jobs.get(action.job)
+        if action.kind == "step" and job is not None and job.per_iteration:
+            return max(self.watchdog, 20 * action.n * job.per_iteration)
+        if action.kind in ("evict", "park") and job is not None and job.per_iteration:
+            return max(self.watchdog, 20 * job.per_iteration)
+        return 5 * self.watchdog
+
+    def _do(self, w: Worker, action: Action) -> None:
+        engine = RemoteEngine(w, self._timeout(action))
+        if action.kind == "task":
+            fn, fut = action.task
+            try:
+                if fut.set_running_or_notify_cancel():
+                    try:
+                        fut.set_result(fn(engine))
+                    except WorkerLost as lost:
+                        fut.set_exception(Internal(
+                            f"the renderer process {lost.reason} while serving this request; "
+                            "the daemon and other users' jobs are unaffected"))
+                        raise
+                    except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                        fut.set_exception(exc)
+            finally:
+                if w.state != "restarting":
+                    self._done(action)
+            return
+        try:
+            job = self.store.get_job(action.job)
+        except NotFound:  # deleted meanwhile
+            with self.lock:
+                self.scheduler.remove(action.job)
+            self._done(action, finished=True)
+            return
+        try:
+            if action.kind == "load":
+                self._load(engine, job, action)
+            elif action.kind == "step":
+                self._step(engine, job, action)
+            elif action.kind in ("evict", "park"):
+                self._unload(engine, job, action)
+            elif action.kind == "cancel":
+                self._finish(engine, job, action, pb.CANCELLED, "cancelled", cancelled=True)
+        except UserError as exc:
+            self._fail(engine, job, action, str(exc))
+
+    def _load(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
+        scene = self.store.get_scene(job.owner, job.spec.scene)
+        settings = convert.job_settings(job.spec, self.scene_input(scene),
+                                        self.store.read_blob)
+        started: api.Started = engine.start(job.name, settings,
+                                            self.store.read_checkpoint(job.name))
+        self._shapes[job.name] = started.shapes
+        # The first checkpoint after a load is due after CHECKPOINT_ITERATIONS, however fast.
+        self._checkpointed[job.name] = (started.iteration, -math.inf)
+        with self.lock:
+            job = self.store.get_job(job.name)
+            if job.state == pb.QUEUED:
+                job.state = pb.RUNNING
+            job.integrator, job.integrator_reason = started.integrator, started.integrator_reason
+            job.sensors_rendered[:] = started.sensors
+            job.notes.extend(n for n in started.notes if n not in job.notes)
+            if job.resumed_from == "pending":
+                job.resumed_from = (f"checkpoint at iteration {started.iteration}"
+                                    if started.iteration else "from the start")
+            self.store.truncate_history(job.name, started.iteration)  # they will run again
+            self._save(job)
+        self._done(action)
+
+    def _step(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
+        progress: api.Progress = engine.step(job.name, action.n)
+        shapes = self._shapes.get(job.name, {})
+        records = [convert.record_to_pb(r, shapes) for r in progress.records]
+        for record in records:
+            self.store.add_iteration(job.name, record)
+        with self.lock:
+            job = self.store.get_job(job.name)
+            convert.progress_to_job(job, progress)
+            self.store.put_job(job)
+        self._publish(job.name, [pb.JobEvent(iteration=r) for r in records])
+        if progress.done:
+            self._finish(engine, job, action, pb.SUCCEEDED, progress.stop_reason,
+                         iterations=len(records))
+            return
+        at, when = self._checkpointed.get(job.name, (0, 0.0))
+        if (job.iteration - at >= CHECKPOINT_ITERATIONS
+                and time.monotonic() - when >= CHECKPOINT_SECONDS):
+            self.store.write_checkpoint(job.name, engine.checkpoint(job.name))
+            self._checkpointed[job.name] = (job.iteration, time.monotonic())
+        self._done(action, iterations=len(records))
+
+    def _unload(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
+        """Evict (the job waits for its next slice) or park (it is paused): either way the
+        worker's memory goes back and the job continues later, anywhere, bit for bit."""
+        self.store.write_checkpoint(job.name, engine.checkpoint(job.name))
+        self._checkpointed[job.name] = (job.iteration, time.monotonic())
+        engine.release(job.name)
+        with self.lock:
+            if action.kind == "park":
+                job = self.store.get_job(job.name)
+                job.state = pb.PAUSED
+                self._save(job)
+            self.scheduler.done(action)
+            self.wake.notify_all()
+
+    def _finish(self, engine: RemoteEngine, job: pb.Job, action: Action, state: int, reason: str,
+                cancelled: bool = False, iterations: int = 0) -> None:
+        history = [convert.record_from_pb(r) for r in self.store.history(job.name)]
+        finished: api.Finished = engine.finish(job.name, history, cancelled)
+        scene = self.store.get_scene(job.owner, job.spec.scene)
+        shapes = self._shapes.get(job.name, {})
+        for result in finished.results:
+            self.store.put_result(convert.result_to_pb(job.name, result, shapes, scene,
+                                                       self.store.put_blob))
+        engine.release(job.name)
+        with self.lock:
+            job = self.store.get_job(job.name)
+            job.notes.extend(finished.notes)
+            convert.counters_to_job(job, finished.counters)
+            job.state, job.stop_reason = state, reason
+            self._save(job)
+            self._forget(job.name)
+            self.scheduler.done(action, iterations, finished=True)
+            self.wake.notify_all()
+
+    def _fail(self, engine: RemoteEngine | None, job: pb.Job, action: Action,
+              message: str) -> None:
+        if engine is not None and action.kind in ("step", "evict", "park", "cancel"):
+            try:
+                engine.release(job.name)
+            except UserError:
+                pass
+        with self.lock:
+            try:
+                job = self.store.get_job(job.name)
+            except NotFound:  # deleted meanwhile
+                pass
+            else:
+                job.state, job.error, job.stop_reason = pb.FAILED, message, "failed"
+                self._save(job)
+            self._forget(job.name)
+            self.scheduler.remove(job.name)
+            self.scheduler.done(action, finished=True)
+            self.wake.notify_all()
+
+    def _forget(self, name: str) -> None:
+        for d in (self._shapes, self._checkpointed, self._cancelled_at):
+            d.pop(name, None)
+
+    def _close(self, w: Worker) -> None:
+        """The daemon stops: checkpoint what the worker holds, then stop the process."""
+        with self.lock:
+            loaded = list(self.scheduler.workers[w.name].resident)
+        for name in loaded:
+            try:
+                self.store.write_checkpoint(name, w.call("checkpoint", name,
+                                                         timeout=self.watchdog))
+                self._checkpointed[name] = (self.store.get_job(name).iteration,
+                                            time.monotonic())
+            except (CallFailed, WorkerLost, NotFound) as exc:
+                log.error("could not checkpoint %s on shutdown: %s", name, exc)
+        w.stop()
+
+    # -- losing a worker --------------------------------------------------------------------
+
+    def _settle(self, w: Worker, action: Action, lost: WorkerLost) -> None:
+        """What the loss of a worker costs: the job it ran (retried once from its checkpoint,
+        or failed with what happened) and the jobs it held (reloaded elsewhere)."""
+        try:
+            running = self.store.get_job(action.job) if action.job else None
+        except NotFound:
+            running = None
+        what = lost.reason
+        if running is not None:
+            what += (f" during iteration {running.iteration}" if action.kind == "step" else
+                     f" while {_DOING[action.kind]}")
+        with self.lock:
+            outcome = self.scheduler.worker_lost(w.name, what,
+                                                 counts=lost.cause in ("died", "hung"))
+            self.wake.notify_all()
+        log.warning("%s lost (%s): %s", w.name, lost.cause, what)
+        if running is not None and outcome.job:
+            if lost.cause == "memory":
+                with self.lock:
+                    self.scheduler.remove(running.name)
+                self._fail(None, running, action, f"the renderer process {what}; this job "
+                           "needs more memory than a worker may use: fewer pixels or samples "
+                           "per pixel, or a larger limit (matoptd --worker-memory)")
+            elif lost.cause == "stopped" and running.name in self._cancelled_at:
+                with self.lock:
+                    self.scheduler.remove(running.name)
+                    job = self.store.get_job(running.name)
+                    job.state, job.stop_reason = pb.CANCELLED, "cancelled"
+                    job.notes.append("cancelled during a long iteration: its renderer process "
+                                     "was stopped, so the job has no results")
+                    self._save(job)
+                    self._forget(running.name)
+            elif outcome.failed:
+                self._fail(None, running, action, "the renderer process " + ", then ".join(
+                    outcome.crashes) + "; a job that takes its worker down twice is not "
+                    "tried again (other jobs were not affected)")
+            else:
+                self._note_reload(running.name, f"the renderer process {what}; the job goes "
+                                  "on from its last checkpoint on a fresh worker")
+        for name in outcome.others:
+            self._note_reload(name, f"its renderer process {lost.reason}; the job goes on "
+                              "from its last checkpoint")
+
+    def _note_reload(self, name: str, note: str) -> None:
+        with self.lock:
+            try:
+                job = self.store.get_job(name)
+            except NotFound:
+                return
+            job.notes.append(note)
+            job.resumed_from = "pending"
+            self._save(job)
+
+    def _restart(self, w: Worker) -> bool:
+        """A fresh process for the lane; False when the daemon stops first."""
+        for delay in RESTART_DELAYS_S + (RESTART_DELAYS_S[-1],) * 1000:
+            with self.lock:
+                if self.stopping:
+                    return False
+            time.sleep(delay)
+            w.state = "restarting"
+            w.restarts += 1
+            try:
+                w.start()
+            except WorkerLost as lost:
+                log.error("%s did not restart: %s", w.name, lost.reason)
+                continue
+            with self.lock:
+                self.scheduler.worker_ready(w.name)
+                self.wake.notify_all()
+            return True
+        return False
+
+    def _watch_workers(self) -> None:
+        """Memory limits, and cancels that an iteration in flight would keep waiting."""
+        while True:
+            with self.lock:
+                if self.stopping and not any(t.is_alive() for t in self._lanes):
+                    return
+                late = []
+                for name, at in list(self._cancelled_at.items()):
+                    action = self.scheduler.in_flight(name)
+                    if action is not None and time.monotonic() - at > CANCEL_GRACE_S:
+                        late.append(action.worker)
+            for w in self.workers.values():
+                if w.state == "busy":
+                    w.check_memory()
+            for name in late:
+                self.workers[name].kill("was stopped: its job was cancelled during a long "
+                                        "iteration", "stopped")
+            time.sleep(MONITOR_PERIOD_S)
+
+    # -- scenes -----------------------------------------------------------------------------
+
+    def scene_input(self, scene: pb.Scene) -> api.SceneInput:
+        text = self.store.scene_inputs(scene.name)
+        if text is None:
+            raise FailedPrecondition(f"scene '{scene.name}' was made by an older matoptd; "
+                                     "create it again")
+        return convert.scene_input_from_json(text)
+
+
+_DOING = {"load": "loading the job", "evict": "saving the job's checkpoint",
+          "park": "pausing the job", "cancel": "making the job's results", "task": "a task"}
+
+
+def _offer(queues: list[asyncio.Queue], events: list[pb.JobEvent]) -> None:
+    """Queues events for watchers; a watcher too slow to keep up loses iteration events,
+    never state changes (the final one ends its stream)."""
+    for q in queues:
+        for event in events:
+            try:
+                q.put_nowait(event)
+            except asyncio.QueueFull:
+                if event.HasField("job"):
+                    q.get_nowait()
+                    q.put_nowait(event)

@@ -1,0 +1,150 @@
+"""A worker process: one engine on one device, answering the daemon over a socket.
+
+The daemon starts it (``workers.py``) as ``python -m matoptd.worker`` with one end of a socket
+pair. It imports Mitsuba, sets its variant, renders a tiny scene with gradients once (so the
+kernels every job needs are compiled or loaded from the disk cache before a user waits on
+them), says it is ready, then answers calls one at a time:
+
+    daemon -> worker   ("call", method, args)       an ``engine_api.Engine`` method
+    worker -> daemon   ("fetch", sha256)            needs a blob; answered ("blob", bytes)
+                                                    or ("missing", message)
+    worker -> daemon   ("ok", result) | ("error", kind, message)
+    daemon -> worker   ("exit",)
+
+Mitsuba 3.9's AD must stay on one thread per process, which is why there is one engine per
+process and calls never overlap. The worker dies with the daemon: a daemon that is killed
+must not leave renderers holding a GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import os
+import signal
+import socket
+import sys
+import time
+import traceback
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+from . import engine_api as api
+
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int) -> None:
+    """SIGKILL when the daemon's thread that started this process ends (Linux), and a check
+    that the daemon did not end before that was set."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
+
+
+def _error_kind(exc: BaseException) -> str:
+    if isinstance(exc, api.InvalidInput):
+        return "invalid"
+    if isinstance(exc, (api.OutOfMemory, MemoryError)) or "out of memory" in str(exc).lower():
+        return "memory"
+    return "engine" if isinstance(exc, api.EngineError) else "internal"
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, api.EngineError):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
+
+
+def warm_up() -> None:
+    """One gradient iteration on a 16x16 Cornell box: LLVM or CUDA initialised, the common
+    kernels in memory, before the first user's job."""
+    import drjit as dr
+    import mitsuba as mi
+
+    scene = mi.load_file(str(Path(__file__).parent / "engine" / "cornell_box.xml"),
+                         resx=16, resy=16)
+    params = mi.traverse(scene)
+    key = "red.reflectance.value"
+    dr.enable_grad(params[key])
+    params.update()
+    image = mi.render(scene, params, spp=1, integrator=mi.load_dict({"type": "prb"}))
+    loss = dr.mean(dr.square(image), axis=None)
+    dr.backward(loss)
+    dr.eval(dr.grad(params[key]))
+
+
+def serve(conn: Connection, cache: Path) -> None:
+    from .engine.service import MitsubaEngine
+
+    def fetch(sha256: str) -> bytes:
+        conn.send(("fetch", sha256))
+        reply = conn.recv()
+        if reply[0] != "blob":
+            raise api.InvalidInput(reply[1])
+        return reply[1]
+
+    engine = MitsubaEngine(fetch, cache)
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return  # the daemon is gone
+        if message[0] == "exit":
+            return
+        _, method, args = message
+        try:
+            result = getattr(engine, method)(*args)
+        except Exception as exc:  # noqa: BLE001 - every failure goes back to the caller
+            kind = _error_kind(exc)
+            if kind == "internal":
+                traceback.print_exc(file=sys.stderr)
+            conn.send(("error", kind, _message(exc)))
+        else:
+            conn.send(("ok", result))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="matoptd.worker")
+    p.add_argument("--fd", type=int, required=True, help="this end of the daemon's socket pair")
+    p.add_argument("--parent", type=int, required=True, help="the daemon's pid")
+    p.add_argument("--cache", type=Path, required=True, help="this worker's blob cache")
+    p.add_argument("--variant", required=True)
+    p.add_argument("--cores", default="", help="CPU cores to run on, e.g. 0,1")
+    p.add_argument("--threads", type=int, default=0, help="Dr.Jit threads (CPU variants)")
+    args = p.parse_args(argv)
+    _die_with_parent(args.parent)
+    # Ctrl-C in the daemon's terminal reaches the whole process group; the daemon decides
+    # when its workers stop, after it has checkpointed their jobs.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if args.cores:
+        os.sched_setaffinity(0, {int(c) for c in args.cores.split(",")})
+    conn = Connection(args.fd)
+    began = time.perf_counter()
+    try:
+        import drjit as dr
+
+        if args.threads and not args.variant.startswith("cuda"):
+            # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
+            # writer wait forever. On one core the two take turns.
+            dr.set_thread_count(max(2, args.threads))
+        from .engine import variant
+        name, device = variant.select(args.variant)
+        warm_up()
+    except BaseException as exc:  # noqa: BLE001 - reported to the daemon, which says why
+        conn.send(("failed", _message(exc)))
+        return 1
+    conn.send(("ready", {"variant": name, "device": device, "pid": os.getpid(),
+                         "host": socket.gethostname(),
+                         "threads": args.threads or dr.thread_count(),
+                         "seconds": time.perf_counter() - began}))
+    serve(conn, args.cache)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,232 @@
+"""Faults cost one job, never the service: real daemons, real worker processes, real signals.
+
+Each test starts its own daemon (two users, alice and bob) so that a worker it kills or stops
+affects nothing else in the suite.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from matopt_api.v1 import matopt_pb2 as pb
+
+from conftest import TOKENS, Daemon, Stubs, wait_state
+from scenes import create_scene, png, textured_quad
+
+pytestmark = pytest.mark.faults
+
+WALLS = ["red.reflectance.value", "green.reflectance.value"]
+
+
+@pytest.fixture
+def two_users(tmp_path):
+    tokens = tmp_path / "tokens"
+    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    daemons = []
+
+    def start(*extra: str) -> tuple[Daemon, Stubs, Stubs]:
+        d = Daemon(tmp_path / f"data{len(daemons)}", tokens, *extra).start()
+        daemons.append(d)
+        return d, Stubs(d.address, TOKENS["alice"]), Stubs(d.address, TOKENS["bob"])
+
+    yield start
+    for d in daemons:
+        d.stop()
+
+
+def cornell_job(stubs: Stubs, iterations: int, res: int = 32, spp: int = 4, **spec) -> pb.Job:
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(
+        overrides={"resx": str(res), "resy": str(res)}))
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=32)).images[0]
+    return stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, iterations=iterations, spp=spp,
+        references=[pb.Reference(blob=ref.exr_blob, filename="ref.exr")],
+        parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS], **spec)))
+
+
+def worker(stubs: Stubs, index: int = 0) -> pb.Worker:
+    return stubs.server.GetServerInfo(pb.GetServerInfoRequest()).workers[index]
+
+
+def wait_worker(stubs: Stubs, states, timeout: float = 120) -> pb.Worker:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        w = worker(stubs)
+        if w.state in states and w.pid:
+            return w
+        time.sleep(0.1)
+    raise AssertionError(f"worker did not reach {states}: {w}")
+
+
+def wait_iteration(stubs: Stubs, name: str, at_least: int, timeout: float = 120) -> pb.Job:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = stubs.jobs.GetJob(pb.GetJobRequest(name=name))
+        if job.iteration >= at_least:
+            return job
+        time.sleep(0.05)
+    raise AssertionError(f"{name} did not reach iteration {at_least}: {job}")
+
+
+class Poller:
+    """Polls GetJob every 50 ms from another thread and counts failed calls: the API must
+    answer throughout a worker's death and restart."""
+
+    def __init__(self, stubs: Stubs, name: str) -> None:
+        self.stubs, self.name, self.calls, self.errors = stubs, name, 0, []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                self.stubs.jobs.GetJob(pb.GetJobRequest(name=self.name), timeout=5)
+                self.calls += 1
+            except Exception as exc:  # noqa: BLE001 - counted and asserted on
+                self.errors.append(exc)
+            time.sleep(0.05)
+
+    def finish(self) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
+def test_kill_9_of_a_worker_costs_no_job(two_users):
+    daemon, alice, bob = two_users()
+    a = cornell_job(alice, 150)
+    b = cornell_job(bob, 150)
+    poller = Poller(alice, a.name)
+    wait_iteration(alice, a.name, 15)
+    wait_iteration(bob, b.name, 15)
+    victim = wait_worker(alice, (pb.WORKER_BUSY, pb.WORKER_IDLE))
+    os.kill(victim.pid, signal.SIGKILL)
+
+    done_a = wait_state(alice, a.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+    done_b = wait_state(bob, b.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+    poller.finish()
+    assert poller.errors == [] and poller.calls > 20  # the API answered all along
+    assert (done_a.state, done_b.state) == (pb.SUCCEEDED, pb.SUCCEEDED), (done_a, done_b)
+    notes = [n for j in (done_a, done_b) for n in j.notes if "SIGKILL" in n]
+    assert notes and "goes on from its last checkpoint" in notes[0]
+    assert any(j.resumed_from.startswith("checkpoint at iteration") for j in (done_a, done_b))
+    for job, stubs in ((done_a, alice), (done_b, bob)):
+        history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+        assert [r.iteration for r in history] == list(range(150))  # no gap, no repeat
+    after = wait_worker(alice, (pb.WORKER_IDLE,))
+    assert after.restarts == 1 and after.pid != victim.pid
+    assert "SIGKILL" in after.last_exit
+
+
+def test_a_job_over_the_memory_limit_fails_that_job_only(two_users):
+    daemon, alice, bob = two_users("--worker-memory", "450M")
+    small = cornell_job(bob, 60)
+    wait_iteration(bob, small.name, 5)
+    # A 2048x2048 texture with its gradient and Adam's two moments: far more than 450 MiB.
+    scene = texture_scene(alice, 2048, seed=0)
+    ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1)).images[0]
+    huge = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, iterations=5, spp=1, references=[pb.Reference(blob=ref.exr_blob)],
+        parameters=[pb.ParameterSpec(key="quad.bsdf.reflectance.data")])))
+    failed = wait_state(alice, huge.name, (pb.FAILED, pb.SUCCEEDED), timeout=300)
+    assert failed.state == pb.FAILED
+    assert "exceeded the worker memory limit of 450.0 MiB" in failed.error, failed.error
+    assert "--worker-memory" in failed.error
+    done = wait_state(bob, small.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+    assert done.state == pb.SUCCEEDED, done
+    after = wait_worker(bob, (pb.WORKER_IDLE,))
+    assert after.memory_limit_bytes == 450 << 20 and "memory limit" in after.last_exit
+
+
+def test_a_hung_iteration_is_cut_off_by_the_watchdog(two_users):
+    daemon, alice, bob = two_users("--watchdog", "3")
+    job = cornell_job(alice, 120)
+    wait_iteration(alice, job.name, 20)
+    hung = wait_worker(alice, (pb.WORKER_BUSY, pb.WORKER_IDLE))
+    os.kill(hung.pid, signal.SIGSTOP)  # alive, but answering nothing: a wedged renderer
+    try:
+        done = wait_state(alice, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+    finally:
+        try:
+            os.kill(hung.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    assert done.state == pb.SUCCEEDED, done
+    assert any("stopped answering" in n for n in done.notes), done.notes
+    assert worker(alice).restarts == 1
+
+
+def texture_scene(stubs: Stubs, size: int, seed: int) -> pb.Scene:
+    """A textured quad; the texture is smooth (a small PNG) but ``size`` texels wide."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    pixels = np.stack([0.2 + 0.6 * x, 0.2 + 0.6 * y, np.full_like(x, 0.2 + 0.1 * seed)], -1)
+    return create_scene(stubs, {"scene.xml": textured_quad(32).encode(),
+                                "textures/albedo.png": png(pixels)}, "scene.xml")
+
+
+def test_paused_jobs_give_their_memory_back(two_users):
+    daemon, alice, bob = two_users("--workers", "1")
+    idle = wait_worker(alice, (pb.WORKER_IDLE,)).memory_bytes
+    key = "quad.bsdf.reflectance.data"
+    jobs = []
+    for seed in range(3):
+        scene = texture_scene(alice, 1024, seed)
+        ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=4)).images[0]
+        jobs.append(alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+            scene=scene.name, iterations=1000, spp=1,
+            references=[pb.Reference(blob=ref.exr_blob)],
+            parameters=[pb.ParameterSpec(key=key)]))))
+    for job in jobs:
+        wait_iteration(alice, job.name, 3)
+    loaded = worker(alice).memory_bytes
+    for job in jobs:
+        alice.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
+    for job in jobs:
+        wait_state(alice, job.name, (pb.PAUSED,))
+    time.sleep(0.5)
+    paused = wait_worker(alice, (pb.WORKER_IDLE,))
+    assert paused.job_count == 0
+    # A job's 1024x1024 texture with Adam's state is ~70 MB; released, the worker is back
+    # near where it started.
+    assert loaded - idle > 60 << 20, (idle, loaded)
+    assert paused.memory_bytes < idle + (40 << 20), (idle, loaded, paused.memory_bytes)
+    at = alice.jobs.ResumeJob(pb.ResumeJobRequest(name=jobs[0].name)).iteration
+    resumed = wait_iteration(alice, jobs[0].name, at + 2)
+    assert resumed.resumed_from == f"checkpoint at iteration {at}"
+
+
+def test_a_paused_job_goes_on_with_the_losses_it_would_have_had(two_users):
+    """Pause releases the job's run; resume reloads it from the checkpoint (on a worker with
+    one thread, where Dr.Jit's sums are deterministic): the same losses as without a pause."""
+    daemon, alice, bob = two_users("--workers", "2")
+    plain = cornell_job(alice, 40, seed=7)
+    wait_state(alice, plain.name, (pb.SUCCEEDED,), timeout=300)
+    paused = alice.jobs.CreateJob(pb.CreateJobRequest(spec=plain.spec))
+    wait_iteration(alice, paused.name, 12)
+    alice.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
+    at = wait_state(alice, paused.name, (pb.PAUSED,)).iteration
+    assert 12 <= at < 40
+    alice.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
+    wait_state(alice, paused.name, (pb.SUCCEEDED,), timeout=300)
+    losses = [[r.loss for r in alice.jobs.GetJobHistory(pb.GetJobHistoryRequest(
+        name=j.name)).iterations] for j in (plain, paused)]
+    assert len(losses[0]) == len(losses[1]) == 40
+    # The same up to the last bit of a float32 sum, whose order across threads varies.
+    np.testing.assert_allclose(losses[1], losses[0], rtol=1e-6)
+
+
+def test_the_server_process_never_loads_the_renderer(two_users):
+    daemon, alice, bob = two_users()
+    job = cornell_job(alice, 5)
+    wait_state(alice, job.name, (pb.SUCCEEDED,))
+    maps = open(f"/proc/{daemon.proc.pid}/maps").read()
+    assert "libdrjit" not in maps and "libmitsuba" not in maps and "mitsuba" not in maps
+    w = worker(alice)
+    worker_maps = open(f"/proc/{w.pid}/maps").read()
+    assert "libdrjit" in worker_maps  # the check above can see them where they are

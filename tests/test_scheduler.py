@@ -1,0 +1,266 @@
+"""The scheduler as a state machine: fake workers, a fake clock, no daemon, no Mitsuba.
+
+A fake worker "runs" each action the scheduler hands it by advancing the clock by the action's
+cost (``COSTS``) and reporting it done, which is what a lane does with a real worker.
+"""
+
+from __future__ import annotations
+
+import collections
+
+import pytest
+
+from matoptd.scheduler import Action, Scheduler
+
+ITERATION = 0.01                                    # seconds per iteration of every job
+COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.3, "task": 0.1}
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make(workers: int = 1, **kw) -> tuple[Scheduler, Clock]:
+    clock = Clock()
+    s = Scheduler(clock=clock, **kw)
+    for i in range(workers):
+        s.add_worker(f"w{i}")
+        s.worker_ready(f"w{i}")
+    return s, clock
+
+
+def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | None = None
+        ) -> list[Action]:
+    """Runs the workers in turn (one action each, lowest clock first) for ``seconds``.
+    ``remaining``: iterations left per job; a job ends when they run out."""
+    done: list[Action] = []
+    free_at = {w: clock.t for w in s.workers}
+    end = clock.t + seconds
+    while True:
+        w = min(free_at, key=free_at.get)
+        if free_at[w] >= end:
+            return done
+        clock.t = max(clock.t, free_at[w])
+        action = s.next(w)
+        if action is None:
+            free_at[w] = clock.t + 0.05
+            continue
+        finished = False
+        if action.kind == "step":
+            n = action.n
+            if remaining is not None:
+                n = min(n, remaining[action.job])
+                remaining[action.job] -= n
+                finished = remaining[action.job] == 0
+            clock.t += n * ITERATION
+        else:
+            clock.t += COSTS[action.kind]
+            n = 0
+        s.done(action, iterations=n, finished=finished)
+        free_at[w] = clock.t
+        done.append(action)
+
+
+def iterations(actions: list[Action]) -> dict[str, int]:
+    out: dict[str, int] = collections.Counter()
+    for a in actions:
+        if a.kind == "step":
+            out[a.job] += a.n
+    return out
+
+
+def test_fair_share_is_per_user_not_per_job():
+    s, clock = make()
+    for i in range(10):
+        s.add_job(f"alice{i}", "alice")
+    s.add_job("bob0", "bob")
+    done = run(s, clock, 120)
+    per_user = collections.Counter()
+    for job, n in iterations(done).items():
+        per_user[job.rstrip("0123456789")] += n
+    ratio = per_user["alice"] / per_user["bob"]
+    assert 0.8 < ratio < 1.25, per_user  # not 10:1
+    # and alice's ten jobs share her half among themselves
+    alice = [iterations(done)[f"alice{i}"] for i in range(10)]
+    assert min(alice) > 0.5 * max(alice), alice
+
+
+def test_switching_keeps_most_of_the_device_busy_with_iterations():
+    """8 users with 5 jobs each: slices are long against a switch (evict + load), so the
+    total iteration rate stays near one job's."""
+    s, clock = make()
+    for u in range(8):
+        for j in range(5):
+            s.add_job(f"u{u}j{j}", f"user{u}")
+    seconds = 300
+    done = run(s, clock, seconds)
+    busy_iterating = sum(iterations(done).values()) * ITERATION
+    assert busy_iterating / seconds >= 0.8
+    assert len(iterations(done)) == 40  # every job ran
+
+
+def test_a_new_users_first_iteration_starts_within_a_few_seconds():
+    s, clock = make()
+    for u in range(8):
+        for j in range(5):
+            s.add_job(f"u{u}j{j}", f"user{u}")
+    run(s, clock, 600)  # everybody has a long history of use
+    s.add_job("newcomer", "new")
+    arrived = clock.t
+    done = run(s, clock, 30)
+    first = next(a for a in done if a.job == "newcomer" and a.kind == "step")
+    assert first.began - arrived < 3 * s.slice_seconds
+
+
+def test_a_returning_user_gets_no_saved_up_credit():
+    s, clock = make()
+    s.add_job("a0", "alice")
+    s.add_job("b0", "bob")
+    run(s, clock, 60)
+    s.add_job("carol0", "carol")  # new: starts at the least busy active user's account
+    done = run(s, clock, 60)
+    n = iterations(done)
+    assert n["carol0"] < 1.5 * min(n["a0"], n["b0"]), n  # a share, not a monopoly
+
+
+def test_a_job_stays_on_its_worker_and_new_jobs_go_to_the_least_loaded():
+    s, clock = make(workers=2)
+    s.add_job("a", "alice")
+    first = s.next("w0")
+    assert (first.kind, first.job) == ("load", "a")
+    s.done(first)
+    s.add_job("b", "bob")
+    # w0 holds a; b goes to the idle w1, which holds nothing, even if w0 asks first
+    assert s.next("w0").kind == "step"
+    second = s.next("w1")
+    assert (second.kind, second.job) == ("load", "b")
+    s.done(second)
+    for _ in range(50):
+        for w in ("w0", "w1"):
+            action = s.next(w)
+            if action is not None:
+                assert action.kind == "step" or action.kind == "task"
+                assert action.job == {"w0": "a", "w1": "b"}[w] or action.job == ""
+                clock.t += 0.5
+                s.done(action, iterations=action.n)
+            busy = s.workers[w].action
+            if busy is not None:
+                s.done(busy, iterations=busy.n)
+
+
+def test_pause_and_cancel_act_at_the_next_iteration_boundary():
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.done(s.next("w0"))                           # load
+    step = s.next("w0")
+    assert s.pause("a") is False                   # busy: it will park at the boundary
+    s.done(step, iterations=step.n)
+    park = s.next("w0")
+    assert (park.kind, park.job) == ("park", "a")
+    s.done(park)
+    assert s.jobs["a"].paused and s.next("w0") is None  # paused jobs do not run
+    s.resume("a")
+    load = s.next("w0")
+    assert (load.kind, load.job) == ("load", "a")  # from its checkpoint
+    s.done(load)
+    step = s.next("w0")
+    assert s.cancel("a") is False
+    s.done(step, iterations=step.n)
+    cancel = s.next("w0")
+    assert (cancel.kind, cancel.job) == ("cancel", "a")
+    s.done(cancel)
+    assert "a" not in s.jobs
+
+
+def test_pausing_or_cancelling_a_job_that_is_not_loaded_needs_no_worker():
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.add_job("b", "bob")
+    assert s.pause("b") is True and s.jobs["b"].paused
+    assert s.cancel("a") is True and "a" not in s.jobs  # never ran: nothing to show
+    # a started job that is not loaded is loaded once more, to make its results
+    s.resume("b")
+    s.done(s.next("w0"))
+    step = s.next("w0")
+    s.done(step, iterations=step.n)
+    evict = Action("evict", "w0", "b")
+    s.workers["w0"].action = evict
+    s.jobs["b"].busy = True
+    s.done(evict)
+    assert s.cancel("b") is False
+    assert [s.next("w0").kind] == ["load"]
+
+
+def test_a_job_whose_worker_dies_twice_fails_and_the_others_go_on():
+    s, clock = make(workers=2)
+    s.add_job("bad", "alice")
+    s.add_job("good", "bob")
+    s.done(s.next("w0"))                           # bad loads on w0
+    s.done(s.next("w1"))                           # good loads on w1
+    s.next("w0")                                   # bad steps...
+    lost = s.worker_lost("w0", "died with SIGSEGV during iteration 3")
+    assert lost.job == "bad" and not lost.failed   # ...and is retried once
+    assert s.jobs["bad"].worker is None
+    s.worker_ready("w0")
+    again = s.next("w0")
+    assert (again.kind, again.job) == ("load", "bad")
+    lost = s.worker_lost("w0", "died with SIGSEGV while loading the job")
+    assert lost.failed and "bad" not in s.jobs
+    assert lost.crashes == ["died with SIGSEGV during iteration 3",
+                            "died with SIGSEGV while loading the job"]
+    assert s.next("w1").job == "good"              # untouched
+
+
+def test_a_worker_stopped_on_purpose_costs_its_job_no_retry():
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.done(s.next("w0"))
+    s.next("w0")
+    for _ in range(3):
+        lost = s.worker_lost("w0", "stopped", counts=False)
+        assert not lost.failed
+        s.worker_ready("w0")
+        s.next("w0")
+    assert s.jobs["a"].crashes == []
+
+
+def test_jobs_held_by_a_lost_worker_are_requeued_anywhere():
+    s, clock = make(workers=2, max_resident=2)
+    s.workers["w1"].ready = False
+    s.add_job("a", "alice")
+    s.add_job("b", "bob")
+    run(s, clock, 10)                                        # both load on w0, take turns
+    assert sorted(s.workers["w0"].resident) == ["a", "b"]
+    running = s.next("w0")
+    lost = s.worker_lost("w0", "died with SIGKILL")
+    assert lost.job == running.job and lost.others == [({"a", "b"} - {running.job}).pop()]
+    s.worker_ready("w1")
+    reload = s.next("w1")
+    assert reload.kind == "load" and reload.job in ("a", "b")
+
+
+def test_tasks_go_before_iterations():
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.done(s.next("w0"))
+    s.add_task("render preview")
+    task = s.next("w0")
+    assert (task.kind, task.task) == ("task", "render preview")
+    s.done(task)
+    assert s.next("w0").kind == "step"
+
+
+@pytest.mark.parametrize("per_iteration,expected", [(0.001, 250), (0.1, 2), (1.0, 1)])
+def test_a_step_call_lasts_about_a_quarter_second(per_iteration, expected):
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.done(s.next("w0"))
+    first = s.next("w0")
+    assert first.n == 1                                      # no pace known yet
+    clock.t += per_iteration
+    s.done(first, iterations=1)
+    assert s.next("w0").n == expected
