@@ -39,3 +39,12 @@ class Internal(UserError):
     """Not the caller's fault, but with a message that says what happened (a renderer process
     that died while serving the request), rather than a traceback's last line."""
     code = grpc.StatusCode.INTERNAL
+
+
+class DiskFull(ResourceExhausted):
+    """The data directory's disk is full: nothing of the request was stored. The daemon holds
+    its jobs and goes on by itself once space is freed."""
+
+    def __init__(self) -> None:
+        super().__init__("the daemon's disk is full: nothing was stored; running jobs are held "
+                         "and go on by themselves once space is freed")

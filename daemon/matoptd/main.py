@@ -137,13 +137,36 @@ async def serve(args: argparse.Namespace) -> None:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    health_task = asyncio.create_task(report_health(health_servicer, ["", *names], runner,
+                                                    stop))
     await stop.wait()
+    await health_task
     log.info("shutting down: finishing the current iteration")
     await health_servicer.enter_graceful_shutdown()
     await server.stop(grace=5)
     await asyncio.to_thread(runner.stop)
     store.close()
     log.info("stopped")
+
+
+async def report_health(servicer: health.aio.HealthServicer, names: list[str], runner: Runner,
+                        stop: asyncio.Event) -> None:
+    """NOT_SERVING while the service cannot do work (no worker runs, or the disk is full),
+    so that a load balancer or a supervisor sees it; SERVING again when it can."""
+    serving = True
+    while not stop.is_set():
+        now = runner.serving
+        if now != serving:
+            serving = now
+            status = (health_pb2.HealthCheckResponse.SERVING if now
+                      else health_pb2.HealthCheckResponse.NOT_SERVING)
+            for name in names:
+                await servicer.set(name, status)
+            log.warning("health: %s", "SERVING" if now else "NOT_SERVING")
+        try:
+            await asyncio.wait_for(stop.wait(), 0.5)
+        except asyncio.TimeoutError:
+            pass
 
 
 def start_workers(args: argparse.Namespace, store: Store) -> Runner:

@@ -29,7 +29,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from matopt_api.v1 import matopt_pb2 as pb
 
 from . import convert, engine_api as api
-from .errors import FailedPrecondition, Internal, InvalidArgument, NotFound, \
+from .errors import DiskFull, FailedPrecondition, Internal, InvalidArgument, NotFound, \
     ResourceExhausted, Unavailable, UserError
 from .scheduler import Action, Scheduler
 from .store import Store
@@ -127,6 +127,11 @@ class Runner:
     def ready(self) -> bool:
         return any(w.state in ("idle", "busy") for w in self.workers.values())
 
+    @property
+    def serving(self) -> bool:
+        """Whether the service can do work: a worker runs and results can be recorded."""
+        return self.ready and not self.scheduler.held and self.store.full_since is None
+
     def stop(self) -> None:
         """Finishes the iterations in flight (cutting off any that runs past a grace period),
         checkpoints loaded jobs, marks running ones INTERRUPTED and stops the workers."""
@@ -175,6 +180,8 @@ class Runner:
         with self.lock:
             if self.stopping:
                 raise Unavailable("the daemon is shutting down")
+            if self.scheduler.held:
+                raise DiskFull()
             if not any(w.state != "failed" for w in self.workers.values()):
                 raise Unavailable("no renderer worker is running")
             self.scheduler.add_task((fn, fut))
@@ -315,6 +322,11 @@ class Runner:
                 self._settle(w, action, lost)
                 if self.stopping or not self._restart(w):
                     return
+            except DiskFull:
+                self._hold(w, action)
+            except Exception:  # noqa: BLE001 - a lane must outlive any one job's failure
+                log.exception("%s: %s of %s failed", w.name, action.kind, action.job)
+                self._give_up(w, action)
         self._close(w)
 
     def _next(self, w: Worker) -> Action | None:
@@ -479,6 +491,56 @@ class Runner:
             self.scheduler.done(action, finished=True)
             self.wake.notify_all()
 
+    def _hold(self, w: Worker, action: Action) -> None:
+        """The disk is full: what the action produced cannot be recorded. Its job's run is
+        released, to be loaded again from its last checkpoint (its history is cut back to it
+        then), and nothing starts until space returns (``_watch_workers`` checks)."""
+        log.error("the data directory's disk is full: jobs are held until space is freed")
+        if action.kind == "task":
+            with self.lock:
+                self.scheduler.held = True
+                self.scheduler.done(action)
+            return
+        try:
+            w.call("release", action.job, timeout=self.watchdog)
+        except (CallFailed, WorkerLost):
+            pass
+        with self.lock:
+            self.scheduler.held = True
+            self.scheduler.drop_run(action)
+            self._checkpointed.pop(action.job, None)
+
+    def _unhold(self) -> None:
+        """Space is back: pauses that could not be recorded are, and the lanes go on."""
+        with self.lock:
+            for job in list(self.scheduler.jobs.values()):
+                if job.control == "pause" and job.worker is None and not job.busy:
+                    self.scheduler.pause(job.name)
+                    stored = self.store.get_job(job.name)
+                    stored.state = pb.PAUSED
+                    self._save(stored)
+            self.scheduler.held = False
+            self.wake.notify_all()
+
+    def _give_up(self, w: Worker, action: Action) -> None:
+        """An unexpected failure (a bug): the job fails with what is known, the lane goes on."""
+        try:
+            job = self.store.get_job(action.job) if action.job else None
+            if job is not None:
+                self._fail(RemoteEngine(w, self.watchdog), job, action,
+                           "internal error in the daemon; the job was stopped (see its log)")
+                return
+        except DiskFull:
+            self._hold(w, action)
+            return
+        except Exception:  # noqa: BLE001 - already logged once
+            log.exception("%s: could not record the failure", w.name)
+        with self.lock:
+            if action.job:
+                self.scheduler.remove(action.job)
+            self.scheduler.done(action, finished=True)
+            self.wake.notify_all()
+
     def _forget(self, name: str) -> None:
         for d in (self._shapes, self._checkpointed, self._cancelled_at):
             d.pop(name, None)
@@ -586,6 +648,13 @@ class Runner:
             for w in self.workers.values():
                 if w.state == "busy":
                     w.check_memory()
+            if (self.scheduler.held or self.store.full_since is not None) \
+                    and self.store.space_back() and self.scheduler.held:
+                log.info("space on the data directory's disk again: jobs go on")
+                try:
+                    self._unhold()
+                except DiskFull:
+                    pass  # filled up again meanwhile
             for name in late:
                 self.workers[name].kill("was stopped: its job was cancelled during a long "
                                         "iteration", "stopped")

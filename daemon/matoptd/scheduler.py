@@ -99,6 +99,7 @@ class Scheduler:
         self.jobs: dict[str, Job] = {}
         self.workers: dict[str, Worker] = {}
         self.tasks: collections.deque = collections.deque()
+        self.held = False  # nothing starts while set (the daemon cannot record results)
         self.usage: dict[str, float] = collections.defaultdict(float)  # per user
         self.served: dict[str, float] = collections.defaultdict(lambda: -math.inf)  # last
 
@@ -198,7 +199,7 @@ class Scheduler:
     def next(self, worker: str) -> Action | None:
         """What the free ``worker`` does now, or None (it waits for an event)."""
         w = self.workers[worker]
-        if not w.ready or w.action is not None:
+        if not w.ready or w.action is not None or self.held:
             return None
         for name in w.resident:
             job = self.jobs[name]
@@ -250,6 +251,16 @@ class Scheduler:
                 job.paused, job.control = True, ""
         if finished or action.kind == "cancel":
             self.remove(job.name)
+
+    def drop_run(self, action: Action) -> None:
+        """The action ended without a record of it, and its job's run was released: the job
+        waits to be loaded again from its last checkpoint."""
+        w = self.workers[action.worker]
+        w.action = None
+        job = self.jobs.get(action.job)
+        if job is not None:
+            job.busy = False
+            self._unload(job, w)
 
     # -- inside -----------------------------------------------------------------------------
 

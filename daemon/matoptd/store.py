@@ -9,16 +9,19 @@ every access takes one lock; SQLite in WAL mode keeps those short.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
+import shutil
 import sqlite3
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from .errors import InvalidArgument, NotFound
+from .errors import DiskFull, InvalidArgument, NotFound
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (
@@ -43,6 +46,28 @@ CREATE TABLE IF NOT EXISTS results (
 _MIGRATIONS = {("scenes", "inputs"): "ALTER TABLE scenes ADD COLUMN inputs TEXT"}
 
 CHUNK = 1 << 20
+FREE_TO_RESUME = 64 << 20  # after the disk filled up, writes go on once this much is free
+
+
+class _Connection(sqlite3.Connection):
+    """SQLite's "database or disk is full" as DiskFull, which handlers answer with
+    RESOURCE_EXHAUSTED and lanes answer by holding their jobs."""
+
+    on_full = staticmethod(lambda: None)
+
+    def execute(self, *args, **kwargs):  # noqa: ANN002, ANN003 - sqlite3's own signature
+        try:
+            return super().execute(*args, **kwargs)
+        except sqlite3.OperationalError as exc:
+            if "full" in str(exc):
+                self.on_full()
+                raise DiskFull() from None
+            raise
+
+
+def disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, DiskFull) or (isinstance(exc, OSError)
+                                         and exc.errno in (errno.ENOSPC, errno.EDQUOT))
 
 
 class Store:
@@ -51,7 +76,8 @@ class Store:
         self.blob_dir = self.root / "blobs"
         self.blob_dir.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(self.root / "matoptd.sqlite3", check_same_thread=False,
-                                   isolation_level=None)
+                                   isolation_level=None, factory=_Connection)
+        self._db.on_full = self.note_full
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.executescript(_SCHEMA)
@@ -65,6 +91,20 @@ class Store:
     def close(self) -> None:
         with self._lock:
             self._db.close()
+
+    # -- the disk ---------------------------------------------------------------------------
+
+    full_since: float | None = None  # when a write last failed for want of space
+
+    def note_full(self) -> None:
+        if self.full_since is None:
+            self.full_since = time.monotonic()
+
+    def space_back(self) -> bool:
+        """Whether writes can go on: true unless the disk filled up and is still short."""
+        if self.full_since is not None and shutil.disk_usage(self.root).free >= FREE_TO_RESUME:
+            self.full_since = None
+        return self.full_since is None
 
     def _query(self, sql: str, args: tuple = ()) -> list[tuple]:
         with self._lock:
@@ -198,15 +238,20 @@ class Store:
         return self.checkpoint_dir / f"{name.removeprefix('jobs/')}.npz"
 
     def write_checkpoint(self, name: str, data: bytes) -> None:
-        """Atomically: a crash while writing leaves the previous checkpoint."""
+        """Atomically: a crash (or a full disk) while writing leaves the previous checkpoint."""
         path = self._checkpoint_file(name)
-        fd, tmp = tempfile.mkstemp(dir=self.checkpoint_dir, prefix=".write-")
+        tmp = None
         try:
+            fd, tmp = tempfile.mkstemp(dir=self.checkpoint_dir, prefix=".write-")
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
             os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+        except BaseException as exc:
+            if tmp:
+                Path(tmp).unlink(missing_ok=True)
+            if disk_full(exc):
+                self.note_full()
+                raise DiskFull() from None
             raise
 
     def read_checkpoint(self, name: str) -> bytes | None:
@@ -259,7 +304,13 @@ class Upload:
 
     def __init__(self, store: Store) -> None:
         self.store = store
-        fd, self.tmp = tempfile.mkstemp(dir=store.blob_dir, prefix=".upload-")
+        try:
+            fd, self.tmp = tempfile.mkstemp(dir=store.blob_dir, prefix=".upload-")
+        except OSError as exc:
+            if disk_full(exc):
+                store.note_full()
+                raise DiskFull() from None
+            raise
         self.file = os.fdopen(fd, "wb")
         self.digest = hashlib.sha256()
         self.size = 0
@@ -267,10 +318,23 @@ class Upload:
     def write(self, chunk: bytes) -> None:
         self.digest.update(chunk)
         self.size += len(chunk)
-        self.file.write(chunk)
+        try:
+            self.file.write(chunk)
+        except OSError as exc:
+            if disk_full(exc):
+                self.store.note_full()
+                raise DiskFull() from None
+            raise
 
     def commit(self, sha256: str | None = None, size: int | None = None) -> pb.Blob:
-        self.file.close()
+        try:
+            self.file.close()
+        except OSError as exc:
+            self.abort()
+            if disk_full(exc):
+                self.store.note_full()
+                raise DiskFull() from None
+            raise
         try:
             got = self.digest.hexdigest()
             if sha256 is not None and got != sha256:
@@ -288,6 +352,9 @@ class Upload:
             self.abort()
 
     def abort(self) -> None:
-        self.file.close()
+        try:
+            self.file.close()
+        except OSError:
+            pass  # a full disk: the file goes anyway
         if os.path.exists(self.tmp):
             os.unlink(self.tmp)
