@@ -59,13 +59,17 @@ def split_cores(cores: list[int], workers: int) -> list[tuple[int, ...]]:
 
 def placements(devices: list[str] | None, workers: int | None, variant: str | None
                ) -> list[Placement]:
-    """One worker per CUDA device (``devices``, else every one nvidia-smi lists), unless CPU
+    """One worker per CUDA device (``devices``, else every one nvidia-smi lists or
+    CUDA_VISIBLE_DEVICES names), unless CPU
     workers are asked for (``workers``, or an LLVM ``variant``) or there is no GPU: then
     ``workers`` (default 1) CPU workers with the cores split between them."""
     cores = cpu_cores()
     cpu_asked = workers is not None or (variant or "").startswith(("llvm", "scalar"))
     if devices is None and not cpu_asked:
-        devices = cuda_devices()
+        # An administrator's CUDA_VISIBLE_DEVICES names the devices the daemon may use.
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES", "").strip()
+        devices = [d.strip() for d in visible.split(",") if d.strip()] if visible \
+            else cuda_devices()
     if devices and not cpu_asked:
         return [Placement(d, tuple(cores), len(cores)) for d in devices]
     return [Placement(None, c, len(c)) for c in split_cores(cores, workers or 1)]
