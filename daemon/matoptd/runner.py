@@ -97,6 +97,7 @@ class Runner:
         self.lock = threading.RLock()
         self.wake = threading.Condition(self.lock)
         self.stopping = False
+        self._stopped = threading.Event()
         self._lanes: list[threading.Thread] = []
         self._first_start: dict[str, concurrent.futures.Future] = {}
         self._watchers: dict[str, _Watchers] = collections.defaultdict(_Watchers)
@@ -137,6 +138,7 @@ class Runner:
         checkpoints loaded jobs, marks running ones INTERRUPTED and stops the workers."""
         with self.lock:
             self.stopping = True
+            self._stopped.set()
             self.wake.notify_all()
         deadline = time.monotonic() + SHUTDOWN_GRACE_S
         for lane in self._lanes:
@@ -617,10 +619,8 @@ class Runner:
     def _restart(self, w: Worker) -> bool:
         """A fresh process for the lane; False when the daemon stops first."""
         for delay in RESTART_DELAYS_S + (RESTART_DELAYS_S[-1],) * 1000:
-            with self.lock:
-                if self.stopping:
-                    return False
-            time.sleep(delay)
+            if self._stopped.wait(delay):  # a shutdown cuts the wait short
+                return False
             w.state = "restarting"
             w.restarts += 1
             try:
