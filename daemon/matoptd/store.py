@@ -3,7 +3,7 @@ iteration histories, results and checkpoints, and content-addressed blobs on dis
 
 Rows hold the serialized protobuf messages of the API, so what a client reads after a restart
 is byte for byte what it read before. A few columns (owner, state, request_id) are copied out
-of the message for lookups. The store is shared by the gRPC handlers and the worker thread, so
+of the message for lookups. The store is shared by the gRPC handlers and the runner's lanes, so
 every access takes one lock; SQLite in WAL mode keeps those short.
 """
 

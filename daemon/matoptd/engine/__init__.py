@@ -1,5 +1,6 @@
 """The engine: the only code of matopt that imports mitsuba and drjit.
 
-Every function here runs on the scheduler's worker thread, one call at a time: Mitsuba 3.9
-breaks when AD work runs in several threads of one process, and ``mi.set_variant`` is global.
+It runs in worker processes only (``matoptd.worker``), one call at a time: Mitsuba 3.9 breaks
+when AD work runs in several threads of one process, and ``mi.set_variant`` is global.
+``service.MitsubaEngine`` implements ``matoptd.engine_api.Engine``, the daemon's one way in.
 """
