@@ -206,9 +206,8 @@ class MitsubaEngine:
             if s.done:
                 done, reason = True, s.stop_reason
                 break
-        # The last step's backward pass is still pending: evaluated now, a checkpoint or an
-        # eviction that follows takes no longer than it should.
-        opt.flush(*(opt.opt[k] for k in opt.settings))
+        # The last step's backward pass stays pending, as in a plain loop: the next iteration
+        # (or a checkpoint) evaluates it. The watchdog gives a checkpoint an iteration's time.
         return api.Progress(records, done, reason, opt.best.iteration, opt.best.loss,
                             opt.elapsed, _counters(opt))
 
