@@ -176,6 +176,22 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     assert "a" not in s.jobs
 
 
+def test_a_cancel_that_arrives_while_the_job_parks_still_ends_it():
+    s, clock = make()
+    s.add_job("a", "alice")
+    s.done(s.next("w0"))
+    step = s.next("w0")
+    s.pause("a")
+    s.done(step, iterations=step.n)
+    park = s.next("w0")
+    assert s.cancel("a") is False                  # busy parking
+    s.done(park)
+    load = s.next("w0")                            # loaded again, to make its results
+    assert (load.kind, load.job) == ("load", "a")
+    s.done(load)
+    assert s.next("w0").kind == "cancel"
+
+
 def test_pausing_or_cancelling_a_job_that_is_not_loaded_needs_no_worker():
     s, clock = make()
     s.add_job("a", "alice")

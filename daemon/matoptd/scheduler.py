@@ -248,7 +248,9 @@ class Scheduler:
             self._unload(job, w)
             job.started = True
             if action.kind == "park":
-                job.paused, job.control = True, ""
+                job.paused = True
+                if job.control == "pause":  # a cancel that came meanwhile still stands
+                    job.control = ""
         if finished or action.kind == "cancel":
             self.remove(job.name)
 
