@@ -288,30 +288,27 @@ def bundle_files(main_xml_path: str | os.PathLike,
                  overrides: dict[str, str] | None = None) -> tuple[str, dict[str, Path]]:
     """The bundle of a scene on disk: its main file's bundle path and every file it needs.
 
-    The root is the main XML's directory, as on the server, so relative ``filename``s resolve
-    the same way on both sides. A referenced file that does not exist is reported here, with
-    the XML that names it, rather than by the daemon after an upload.
+    The root is the main XML's directory, as on the server, and files are found by the same
+    rules (``matopt_api.bundle``: includes, meshes, textures, spectra, ...), so every file the
+    daemon will look for is uploaded. A referenced file that does not exist is reported here,
+    with the XML that names it, rather than by the daemon after an upload.
     """
     main = Path(main_xml_path)
     if not main.is_file():
         raise ClientError(f"scene file '{main}' does not exist")
     root = main.absolute().parent
     main_file = bundle.normalize(main.name)
-    absent: set[str] = set()
 
     def read(path: str) -> bytes | None:
-        try:
-            return (root / path).read_bytes()
-        except OSError:
-            absent.add(path)  # reported below, with the XML that refers to it
-            return b"<scene/>"
+        return (root / path).read_bytes() if (root / path).is_file() else None
 
-    found = bundle.closure(main_file, read, overrides=overrides)
+    found = bundle.closure(main_file, read, overrides=overrides,
+                           exists=lambda path: (root / path).is_file())
     files = {main_file: main}
     for xml, refs in found.items():
         for ref in refs:
             disk = root / ref.path
-            if ref.path in absent or not disk.is_file():
+            if not disk.is_file():
                 raise ClientError(f"file '{ref.written}' referenced by '{xml}' is missing "
                                   f"(looked for {disk})")
             files[ref.path] = disk

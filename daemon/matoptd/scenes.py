@@ -3,6 +3,8 @@
 What happens here, all before a worker sees the scene:
 - every file the XML refers to must be in the bundle and inside it (``matopt_api.bundle`` has
   the path rules), and every file of the bundle must have been uploaded;
+- every PLY and OBJ mesh must index only vertices it has (``meshes``): Mitsuba does not
+  check, and an index far past the end ends the renderer;
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
@@ -25,6 +27,7 @@ from pathlib import Path
 from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 
+from . import meshes
 from .errors import FailedPrecondition, InvalidArgument
 from .store import Store
 
@@ -44,9 +47,10 @@ class PreparedScene:
 
 
 def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
-                 overrides: dict[str, str]) -> tuple[str, dict[str, str]]:
-    """The main XML's bundle path and every bundle file's digest, once the bundle is complete
-    and stays inside itself."""
+                 overrides: dict[str, str]) -> tuple[str, dict[str, str], PreparedScene]:
+    """The main XML's bundle path, every bundle file's digest and the prepared scene, once the
+    bundle is complete, stays inside itself (``matopt_api.bundle`` reads it as Mitsuba will)
+    and its meshes index only vertices they have."""
     if not main_file:
         raise InvalidArgument("main_file is empty: name the bundle's main scene XML")
     try:
@@ -68,15 +72,22 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     def read(path: str) -> bytes | None:
         return store.blob_file(paths[path]).read_bytes() if path in paths else None
 
+    prepared = prepare(read(main), main, overrides)
+    checked: set[tuple[str, str]] = set()
     try:
-        for xml, refs in bundle.closure(main, read, overrides).items():
+        # The main XML as the user wrote it: the rules read it as ``prepare`` rewrote it.
+        for xml, refs in bundle.closure(main, read, prepared.overrides,
+                                        exists=paths.__contains__).items():
             for ref in refs:
                 if ref.path not in paths:
                     raise InvalidArgument(f"'{xml}' references '{ref.written}', which is not in "
                                           f"the bundle (expected at '{ref.path}')")
-    except bundle.BundleError as exc:
+                if ref.plugin in meshes.CHECKS and (ref.plugin, ref.path) not in checked:
+                    meshes.CHECKS[ref.plugin](read(ref.path), ref.path)
+                    checked.add((ref.plugin, ref.path))
+    except (bundle.BundleError, meshes.MeshError) as exc:
         raise InvalidArgument(str(exc)) from None
-    return main, paths
+    return main, paths, prepared
 
 
 def loadable_path(main: str) -> str:
@@ -85,7 +96,11 @@ def loadable_path(main: str) -> str:
 
 
 def prepare(text: bytes, main: str, overrides: dict[str, str]) -> PreparedScene:
-    """The loadable copy of the main XML (stable ids, ...) and the overrides that apply."""
+    """The loadable copy of the main XML (stable ids, ...) and the overrides that apply.
+
+    ``check_bundle`` follows the file references of the XML as the user wrote it, rewritten
+    only as ``bundle.forward_slashes`` does, with these overrides: nothing else here may change
+    which file a reference names (a default's new value goes in as an override)."""
     try:
         root = bundle.parse_xml(text, main)
     except bundle.BundleError as exc:
@@ -96,10 +111,11 @@ def prepare(text: bytes, main: str, overrides: dict[str, str]) -> PreparedScene:
     declared = bundle.declared_defaults(root)
     warnings = [f"override '{k}={v}' ignored: '{main}' declares no <default name=\"{k}\">"
                 for k, v in sorted(overrides.items()) if k not in declared]
-    overrides = {k: LEGACY_INTEGRATORS.get(v, v) for k, v in overrides.items()}
-    warnings += modernize_integrators(root, main)
+    replaced, notes = modernize_integrators(root, main)
+    overrides = {**replaced, **{k: LEGACY_INTEGRATORS.get(v, v) for k, v in overrides.items()}}
+    warnings += notes
     assign_ids(root)
-    forward_slashes(root)
+    bundle.forward_slashes(root)
     float_textures(root)
     xml = ET.tostring(root, encoding="utf-8", xml_declaration=True)
     return PreparedScene(xml, {k: v for k, v in overrides.items() if k in declared}, warnings)
@@ -110,14 +126,16 @@ LEGACY_INTEGRATORS = {"prb_reparam": "prb_projective", "direct_reparam": "direct
 _LEGACY_PROPERTIES = ("reparam_", )
 
 
-def modernize_integrators(root: ET.Element, main: str) -> list[str]:
+def modernize_integrators(root: ET.Element, main: str) -> tuple[dict[str, str], list[str]]:
     """Old scenes (the thesis's among them) name integrators Mitsuba 3.9 no longer has and set
-    ``reparam_*`` properties its parser rejects; load them with the modern equivalent."""
+    ``reparam_*`` properties its parser rejects; load them with the modern equivalent. A
+    default naming one keeps its text and gets the successor as an override, returned."""
+    replaced: dict[str, str] = {}
     warnings = []
     for elem in root.iter():
         if elem.tag == "default" and elem.get("value") in LEGACY_INTEGRATORS:
             old = elem.get("value")
-            elem.set("value", LEGACY_INTEGRATORS[old])
+            replaced[elem.get("name", "")] = LEGACY_INTEGRATORS[old]
             warnings.append(f"'{main}': default '{elem.get('name')}' names integrator '{old}' "
                             f"(removed in Mitsuba 3.5); using '{LEGACY_INTEGRATORS[old]}'")
         if elem.tag != "integrator":
@@ -132,7 +150,7 @@ def modernize_integrators(root: ET.Element, main: str) -> list[str]:
                 elem.remove(child)
                 warnings.append(f"'{main}': dropped integrator property "
                                 f"'{child.get('name')}' (no longer exists)")
-    return warnings
+    return replaced, warnings
 
 
 def float_textures(root: ET.Element) -> None:
@@ -142,15 +160,6 @@ def float_textures(root: ET.Element) -> None:
         if elem.get("type") == "bitmap" and not any(
                 c.tag == "string" and c.get("name") == "format" for c in elem):
             ET.SubElement(elem, "string", name="format", value="variant")
-
-
-def forward_slashes(root: ET.Element) -> None:
-    """Windows separators in file references, which Mitsuba on Linux would take literally."""
-    for elem in root.iter():
-        if elem.tag == "string" and elem.get("name") == "filename":
-            elem.set("value", elem.get("value", "").replace("\\", "/"))
-        elif elem.tag == "include" and elem.get("filename"):
-            elem.set("filename", elem.get("filename", "").replace("\\", "/"))
 
 
 def assign_ids(root: ET.Element) -> None:

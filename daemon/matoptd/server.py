@@ -179,11 +179,14 @@ class Scenes(rpc.ScenesServicer):
             paths = {main: self.store.put_blob(scenes.CORNELL_BOX.read_bytes())
                      .removeprefix("blobs/")}
             display = request.display_name or "cornell-box"
+            prepared = scenes.prepare(self.store.read_blob(paths[main]), main, overrides)
         else:
-            main, paths = scenes.check_bundle(self.store, request.main_file,
-                                              list(request.files), overrides)
+            # Off the event loop: a bundle's meshes are read through, which takes a while for
+            # large ones, and other requests go on meanwhile.
+            main, paths, prepared = await asyncio.to_thread(
+                scenes.check_bundle, self.store, request.main_file, list(request.files),
+                overrides)
             display = request.display_name or main.rsplit("/", 1)[-1]
-        prepared = scenes.prepare(self.store.read_blob(paths[main]), main, overrides)
         loadable = scenes.loadable_path(main)
         inputs = convert.scene_input(
             loadable, {**paths, loadable: self.store.put_blob(prepared.xml).removeprefix("blobs/")},
@@ -237,9 +240,35 @@ class Scenes(rpc.ScenesServicer):
             raise InvalidArgument(f"spp must be >= 1, got {request.spp}")
         inputs = self.runner.scene_input(scene)
         render = convert.render_request(request, self.store.read_blob)
+        params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
+        for key, values in render.values.items():
+            _check_value(key, values, params, scene)
         images = await self.runner.task(lambda engine: engine.render(inputs, render))
         return pb.RenderSceneResponse(images=[convert.image_to_pb(i, self.store.put_blob)
                                               for i in images])
+
+
+def _listed(key: str, params: dict[str, pb.Parameter], scene: pb.Scene) -> pb.Parameter:
+    """The scene's parameter ``key``, or INVALID_ARGUMENT with the closest listed key."""
+    if key not in params:
+        close = difflib.get_close_matches(key, list(params), n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        raise InvalidArgument(f"unknown parameter key '{key}' in scene '{scene.display_name}' "
+                              f"(ListSceneParameters lists the parameters that can be set: the "
+                              f"differentiable ones){hint}")
+    return params[key]
+
+
+def _check_value(key: str, values, params: dict[str, pb.Parameter], scene: pb.Scene) -> None:
+    """A value given for a listed parameter: one finite number per component. Integer buffers
+    (a mesh's faces) are not listed: the renderer would take their values as indices."""
+    info = _listed(key, params, scene)
+    size = math.prod(info.shape) if info.shape else 1
+    if len(values) != size:
+        raise InvalidArgument(f"parameter '{key}': got {len(values)} component(s), expected "
+                              f"{size} (shape {list(info.shape)})")
+    if not all(math.isfinite(v) for v in values):
+        raise InvalidArgument(f"parameter '{key}': value is not finite")
 
 
 # -- jobs ------------------------------------------------------------------------------------
@@ -301,15 +330,10 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
                               "(ListSceneParameters shows them)")
     keys = set()
     for p in out.parameters:
-        if p.key not in params:
-            close = difflib.get_close_matches(p.key, list(params), n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
-            raise InvalidArgument(f"unknown parameter key '{p.key}' in scene "
-                                  f"'{scene.display_name}'{hint}")
+        info = _listed(p.key, params, scene)
         if p.key in keys:
             raise InvalidArgument(f"parameter '{p.key}' is selected twice")
         keys.add(p.key)
-        info = params[p.key]
         lr = p.learning_rate if p.HasField("learning_rate") else (
             default_lr or info.default_learning_rate)
         if not (math.isfinite(lr) and lr > 0):

@@ -59,6 +59,22 @@ def _message(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
+def _own_directory(cache: Path) -> Path:
+    """Moves this process into an empty, read-only directory of its own, before Mitsuba is
+    imported: a relative file name a scene gets past every check then finds nothing there,
+    rather than the daemon's files in the directory it was started from. Paths given relative
+    to that directory (the cache, Dr.Jit's kernel cache) are made absolute first; returns the
+    cache's."""
+    cache = cache.absolute()
+    if os.environ.get("DRJIT_CACHE_DIR"):
+        os.environ["DRJIT_CACHE_DIR"] = os.path.abspath(os.environ["DRJIT_CACHE_DIR"])
+    empty = cache / "cwd"
+    empty.mkdir(parents=True, exist_ok=True)
+    empty.chmod(0o555)
+    os.chdir(empty)
+    return cache
+
+
 def warm_up() -> None:
     """One gradient iteration on a 16x16 Cornell box: LLVM or CUDA initialised, the common
     kernels in memory, before the first user's job."""
@@ -117,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=0, help="Dr.Jit threads (CPU variants)")
     args = p.parse_args(argv)
     _die_with_parent(args.parent)
+    args.cache = _own_directory(args.cache)
     # Ctrl-C in the daemon's terminal reaches the whole process group; the daemon decides
     # when its workers stop, after it has checkpointed their jobs.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -132,8 +149,9 @@ def main(argv: list[str] | None = None) -> int:
             # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
             # writer wait forever. On one core the two take turns.
             dr.set_thread_count(max(2, args.threads))
-        from .engine import variant
+        from .engine import scene, variant
         name, device = variant.select(args.variant)
+        scene.preload_plugins()
         warm_up()
     except BaseException as exc:  # noqa: BLE001 - reported to the daemon, which says why
         conn.send(("failed", _message(exc)))

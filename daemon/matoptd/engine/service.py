@@ -91,7 +91,8 @@ class MitsubaEngine:
         return directory / scene.main_file
 
     def load(self, scene: api.SceneInput, keys: list[str] | None = None) -> mi.Scene:
-        return scenes.load(self.layout(scene), scene.overrides, scene.display, keys)
+        return scenes.load(self.layout(scene), scene.overrides, scene.display, keys,
+                           root=self.cache / "scenes" / scene.key)
 
     # -- scene tasks ------------------------------------------------------------------------
 
@@ -116,11 +117,15 @@ class MitsubaEngine:
                 raise api.InvalidInput(f"sensor {s} does not exist: the scene has {count} "
                                        "sensor(s)")
         params = mi.traverse(loaded)
+        # Only differentiable float values: an integer buffer (a mesh's faces) set to other
+        # numbers would make the renderer index memory it does not own.
+        settable = {info.key for info in parameters.describe(params)}
         saved = {}
         try:
             for key, v in request.values.items():
-                if key not in params:
-                    raise api.InvalidInput(f"unknown parameter key '{key}'")
+                if key not in settable:
+                    raise api.InvalidInput(f"parameter '{key}' cannot be set: it is not one of "
+                                           "the scene's differentiable parameters")
                 saved[key] = parameters.flat(params[key])
                 try:
                     params[key] = parameters.assign(params[key], v)
