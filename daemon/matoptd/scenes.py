@@ -2,7 +2,7 @@
 
 What happens here, all before a worker sees the scene:
 - every file the XML refers to must be in the bundle and inside it (``matopt_api.bundle`` has
-  the path rules), and every file of the bundle must have been uploaded;
+  the path rules), and every file of the bundle must have been uploaded by the caller;
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
@@ -25,7 +25,7 @@ from pathlib import Path
 from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 
-from .errors import FailedPrecondition, InvalidArgument
+from .errors import InvalidArgument, NotFound
 from .store import Store
 
 CORNELL_BOX = Path(__file__).parent / "engine" / "cornell_box.xml"
@@ -44,9 +44,9 @@ class PreparedScene:
 
 
 def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
-                 overrides: dict[str, str]) -> tuple[str, dict[str, str]]:
-    """The main XML's bundle path and every bundle file's digest, once the bundle is complete
-    and stays inside itself."""
+                 overrides: dict[str, str], owner: str) -> tuple[str, dict[str, str]]:
+    """The main XML's bundle path and every bundle file's digest, once the bundle is complete,
+    stays inside itself and is ``owner``'s."""
     if not main_file:
         raise InvalidArgument("main_file is empty: name the bundle's main scene XML")
     try:
@@ -62,8 +62,10 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     if main not in paths:
         raise InvalidArgument(f"main_file '{main}' is not among the bundle's files")
     for path, sha in paths.items():
-        if not store.has_blob(sha):
-            raise FailedPrecondition(f"bundle file '{path}' (sha256 {sha}) has not been uploaded")
+        # Another user's upload is as absent as one never made: nothing is read before this.
+        if not store.owns(owner, sha):
+            raise NotFound(f"bundle file '{path}' (blob 'blobs/{sha}') not found (upload it "
+                           "first)")
 
     def read(path: str) -> bytes | None:
         return store.blob_file(paths[path]).read_bytes() if path in paths else None
