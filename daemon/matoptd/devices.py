@@ -117,6 +117,15 @@ def parse_size(text: str) -> int:
     return int(float(m.group(1)) * 1024 ** " KMGT".index((m.group(2) or " ").upper()))
 
 
+def format_size(n: float) -> str:
+    """Bytes as people read them: 812 B, 3.4 KiB, 8.0 GiB."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    raise AssertionError("unreachable")
+
+
 def core_ranges(cores) -> str:
     """(0, 1, 2, 5) -> '0-2,5'."""
     parts, start = [], None

@@ -2,11 +2,11 @@
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
             [--devices 0,1 | --workers N] [--worker-memory SIZE] [--watchdog SECONDS]
-            [--tls-cert FILE --tls-key FILE] [--port-file FILE]
+            [--quota SIZE] [--tls-cert FILE --tls-key FILE] [--port-file FILE]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
 MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_WORKER_MEMORY,
-MATOPTD_WATCHDOG, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY).
+MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY).
 
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
@@ -67,6 +67,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="seconds without an answer after which a worker counts as hung and "
                         "is restarted; an iteration gets 20x its job's usual time if that is "
                         "more, a load or first iteration 5x this (default %(default)s)")
+    p.add_argument("--quota", default=env("MATOPTD_QUOTA"), metavar="SIZE",
+                   help="bytes of blobs each user may own (uploads, renders, results), e.g. "
+                        "20G; past it uploads are refused, and new scenes, renders and jobs "
+                        "until the user deletes blobs; results of running jobs are still "
+                        "kept (default: no limit)")
     p.add_argument("--slice", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--tls-cert", type=Path, default=env("MATOPTD_TLS_CERT"))
     p.add_argument("--tls-key", type=Path, default=env("MATOPTD_TLS_KEY"))
@@ -103,8 +108,17 @@ async def serve(args: argparse.Namespace) -> None:
     if bool(args.tls_cert) != bool(args.tls_key):
         raise SystemExit("matoptd: --tls-cert and --tls-key go together")
 
+    quota = None
+    if args.quota:
+        try:
+            quota = devices.parse_size(args.quota)
+        except ValueError as exc:
+            raise SystemExit(f"matoptd: --quota: {exc}")
+        if quota < 1:
+            raise SystemExit(f"matoptd: --quota must be at least 1 byte, got '{args.quota}'")
+
     args.data_dir.mkdir(parents=True, exist_ok=True)
-    store = Store(args.data_dir)
+    store = Store(args.data_dir, quota)
     runner = await asyncio.to_thread(start_workers, args, store)
 
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
@@ -132,6 +146,8 @@ async def serve(args: argparse.Namespace) -> None:
              sum(w.state == "idle" for w in runner.workers.values()),
              "TLS" if args.tls_cert else "plaintext",
              f"{len(set(tokens.values()))} user(s)" if tokens else "local user only")
+    if quota is not None:
+        log.info("blob quota: %s per user", devices.format_size(quota))
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -461,7 +461,7 @@ class Runner:
         shapes = self._shapes.get(job.name, {})
         for result in finished.results:
             self.store.put_result(convert.result_to_pb(job.name, result, shapes, scene,
-                                                       self.store.put_blob))
+                                                       self.store.writer(job.owner)))
         engine.release(job.name)
         with self.lock:
             job = self.store.get_job(job.name)

@@ -2,7 +2,7 @@
 
 What happens here, all before a worker sees the scene:
 - every file the XML refers to must be in the bundle and inside it (``matopt_api.bundle`` has
-  the path rules), and every file of the bundle must have been uploaded;
+  the path rules), and every file of the bundle must have been uploaded by the caller;
 - every PLY and OBJ mesh must index only vertices it has (``meshes``): Mitsuba does not
   check, and an index far past the end ends the renderer;
 - objects directly under ``<scene>`` that have no ``id`` get one from their position
@@ -28,7 +28,7 @@ from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 
 from . import meshes
-from .errors import FailedPrecondition, InvalidArgument
+from .errors import InvalidArgument, NotFound
 from .store import Store
 
 CORNELL_BOX = Path(__file__).parent / "engine" / "cornell_box.xml"
@@ -47,10 +47,11 @@ class PreparedScene:
 
 
 def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
-                 overrides: dict[str, str]) -> tuple[str, dict[str, str], PreparedScene]:
+                 overrides: dict[str, str], owner: str
+                 ) -> tuple[str, dict[str, str], PreparedScene]:
     """The main XML's bundle path, every bundle file's digest and the prepared scene, once the
-    bundle is complete, stays inside itself (``matopt_api.bundle`` reads it as Mitsuba will)
-    and its meshes index only vertices they have."""
+    bundle is complete, is ``owner``'s, stays inside itself (``matopt_api.bundle`` reads it as
+    Mitsuba will) and its meshes index only vertices they have."""
     if not main_file:
         raise InvalidArgument("main_file is empty: name the bundle's main scene XML")
     try:
@@ -66,8 +67,10 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     if main not in paths:
         raise InvalidArgument(f"main_file '{main}' is not among the bundle's files")
     for path, sha in paths.items():
-        if not store.has_blob(sha):
-            raise FailedPrecondition(f"bundle file '{path}' (sha256 {sha}) has not been uploaded")
+        # Another user's upload is as absent as one never made: nothing is read before this.
+        if not store.owns(owner, sha):
+            raise NotFound(f"bundle file '{path}' (blob 'blobs/{sha}') not found (upload it "
+                           "first)")
 
     def read(path: str) -> bytes | None:
         return store.blob_file(paths[path]).read_bytes() if path in paths else None

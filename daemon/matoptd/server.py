@@ -21,7 +21,7 @@ from matoptd import __version__
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from . import convert, scenes
+from . import blob_refs, convert, scenes
 from .auth import Authenticator
 from .errors import FailedPrecondition, InvalidArgument, UserError
 from .runner import FINAL, Runner, now
@@ -129,11 +129,11 @@ class Blobs(rpc.BlobsServicer):
     @unary
     async def FindMissingBlobs(self, request, context, user):
         return pb.FindMissingBlobsResponse(
-            missing_sha256=[s for s in request.sha256 if not self.store.has_blob(s)])
+            missing_sha256=[s for s in request.sha256 if not self.store.owns(user, s)])
 
     @unary
     async def UploadBlob(self, request_iterator, context, user):
-        upload = self.store.begin_upload()
+        upload = self.store.begin_upload(user)
         try:
             header = None
             async for msg in request_iterator:
@@ -142,6 +142,8 @@ class Blobs(rpc.BlobsServicer):
                         raise InvalidArgument("UploadBlob got a second header")
                     header = msg.header
                     self.store.blob_path(header.sha256)  # validates the digest's form
+                    # Refused before the content travels; checked again when it is kept.
+                    self.store.check_room(user, header.size_bytes, header.sha256)
                 elif header is None:
                     raise InvalidArgument("UploadBlob must start with a header "
                                           "(sha256, size_bytes)")
@@ -149,16 +151,30 @@ class Blobs(rpc.BlobsServicer):
                     upload.write(msg.chunk)
             if header is None:
                 raise InvalidArgument("UploadBlob got no header")
-            return upload.commit(header.sha256, header.size_bytes)
+            return upload.commit(header.sha256, header.size_bytes, within_quota=True)
         finally:
             upload.abort()
 
     @streaming
     async def DownloadBlob(self, request, context, user):
-        path = self.store.blob_file(request.name)
+        path = self.store.blob_file(request.name, user)
         with open(path, "rb") as f:
             while chunk := f.read(CHUNK):
                 yield pb.DownloadBlobResponse(chunk=chunk)
+
+    @unary
+    async def ListBlobs(self, request, context, user):
+        offset, limit = _page(request.page_token, request.page_size)
+        found = self.store.list_blobs(user, offset, limit)
+        return pb.ListBlobsResponse(blobs=found,
+                                    next_page_token=_next_token(offset, limit, len(found)),
+                                    used_bytes=self.store.usage(user),
+                                    quota_bytes=self.store.quota or 0)
+
+    @unary
+    async def DeleteBlob(self, request, context, user):
+        self.store.delete_blob(user, _name("blobs", request.name))
+        return pb.DeleteBlobResponse()
 
 
 # -- scenes ----------------------------------------------------------------------------------
@@ -173,10 +189,11 @@ class Scenes(rpc.ScenesServicer):
             existing = self.store.scene_by_request(user, request.request_id)
             if existing:
                 return existing
+        self.store.check_room(user)
         overrides = dict(request.overrides)
         if not request.main_file and not request.files:
             main = scenes.CORNELL_NAME
-            paths = {main: self.store.put_blob(scenes.CORNELL_BOX.read_bytes())
+            paths = {main: self.store.put_blob(scenes.CORNELL_BOX.read_bytes(), user)
                      .removeprefix("blobs/")}
             display = request.display_name or "cornell-box"
             prepared = scenes.prepare(self.store.read_blob(paths[main]), main, overrides)
@@ -185,11 +202,12 @@ class Scenes(rpc.ScenesServicer):
             # large ones, and other requests go on meanwhile.
             main, paths, prepared = await asyncio.to_thread(
                 scenes.check_bundle, self.store, request.main_file, list(request.files),
-                overrides)
+                overrides, user)
             display = request.display_name or main.rsplit("/", 1)[-1]
         loadable = scenes.loadable_path(main)
         inputs = convert.scene_input(
-            loadable, {**paths, loadable: self.store.put_blob(prepared.xml).removeprefix("blobs/")},
+            loadable,
+            {**paths, loadable: self.store.put_blob(prepared.xml, user).removeprefix("blobs/")},
             prepared.overrides, main)
         described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
         scene = pb.Scene(name=f"scenes/{uuid.uuid4().hex[:12]}", display_name=display,
@@ -236,15 +254,16 @@ class Scenes(rpc.ScenesServicer):
     @unary
     async def RenderScene(self, request, context, user):
         scene = self.store.get_scene(user, _name("scenes", request.name))
+        self.store.check_room(user)
         if request.HasField("spp") and request.spp < 1:
             raise InvalidArgument(f"spp must be >= 1, got {request.spp}")
         inputs = self.runner.scene_input(scene)
-        render = convert.render_request(request, self.store.read_blob)
+        render = convert.render_request(request, self.store.reader(user))
         params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
         for key, values in render.values.items():
             _check_value(key, values, params, scene)
         images = await self.runner.task(lambda engine: engine.render(inputs, render))
-        return pb.RenderSceneResponse(images=[convert.image_to_pb(i, self.store.put_blob)
+        return pb.RenderSceneResponse(images=[convert.image_to_pb(i, self.store.writer(user))
                                               for i in images])
 
 
@@ -377,13 +396,17 @@ class Jobs(rpc.JobsServicer):
             if existing:
                 return existing
         scene = self.store.get_scene(user, _name("scenes", request.spec.scene))
+        self.store.check_room(user)
+        # Before any other check: another user's blob must fail exactly as a missing one.
+        for sha in sorted(blob_refs.spec_blobs(request.spec)):
+            self.store.blob_file(sha, user)
         params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
         spec = _check_spec(request.spec, scene, params, self.store)
         if request.initial_from_job:
             self._start_from(user, request, spec)
         # Decoding every value now refuses a malformed .npy here, not when the job loads.
         settings = convert.job_settings(spec, self.runner.scene_input(scene),
-                                        self.store.read_blob)
+                                        self.store.reader(user))
         await self.runner.task(lambda engine: engine.check_references(settings.references))
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
                      owner=user, best_iteration=-1)

@@ -1,6 +1,11 @@
 """Everything that must survive a daemon restart: an SQLite database of scenes, jobs, their
 iteration histories, results and checkpoints, and content-addressed blobs on disk.
 
+Blobs are kept on disk once per content, and reached per user: the table blob_owners says who
+owns which (those who uploaded it, and those the daemon wrote it for: renders, results). A
+user's scenes and jobs only ever name blobs the user owns, and a user cannot give up a blob
+they still use, so a file nobody owns is used by nobody and leaves the disk.
+
 Rows hold the serialized protobuf messages of the API, so what a client reads after a restart
 is byte for byte what it read before. A few columns (owner, state, request_id) are copied out
 of the message for lookups. The store is shared by the gRPC handlers and the runner's lanes, so
@@ -17,11 +22,15 @@ import sqlite3
 import tempfile
 import threading
 import time
+from functools import partial
 from pathlib import Path
+from typing import Callable, Iterator
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from .errors import DiskFull, InvalidArgument, NotFound
+from . import blob_refs
+from .devices import format_size
+from .errors import DiskFull, FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (
@@ -44,6 +53,11 @@ CREATE TABLE IF NOT EXISTS results (
 
 # Columns added since the first release, for data dirs made by it.
 _MIGRATIONS = {("scenes", "inputs"): "ALTER TABLE scenes ADD COLUMN inputs TEXT"}
+
+# Who owns which blob; ``size`` is the blob's, repeated per owner so that usage is one sum.
+_OWNERS = ("CREATE TABLE blob_owners (sha256 TEXT NOT NULL, owner TEXT NOT NULL, "
+           "size INTEGER NOT NULL, PRIMARY KEY (sha256, owner))",
+           "CREATE INDEX blob_owners_owner ON blob_owners(owner)")
 
 CHUNK = 1 << 20
 FREE_TO_RESUME = 64 << 20  # after the disk filled up, writes go on once this much is free
@@ -71,8 +85,10 @@ def disk_full(exc: BaseException) -> bool:
 
 
 class Store:
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, quota: int | None = None) -> None:
+        """``quota``: the bytes of blobs each user may own (None: no limit)."""
         self.root = Path(data_dir)
+        self.quota = quota
         self.blob_dir = self.root / "blobs"
         self.blob_dir.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(self.root / "matoptd.sqlite3", check_same_thread=False,
@@ -87,6 +103,28 @@ class Store:
         self.checkpoint_dir = self.root / "checkpoints"
         self.checkpoint_dir.mkdir(exist_ok=True)
         self._lock = threading.Lock()
+        if not self._db.execute("SELECT 1 FROM sqlite_master WHERE name='blob_owners'").fetchall():
+            self._add_owners()
+
+    def _add_owners(self) -> None:
+        """Data dirs from before blobs had owners: each user gets the blobs their scenes and
+        jobs name. In one transaction, so a crash halfway leaves no table and the next start
+        does it again. Uploads nothing names stay on disk, owned by nobody (an upload of
+        the same content makes them someone's again)."""
+        self._db.execute("BEGIN")
+        try:
+            for sql in _OWNERS:
+                self._db.execute(sql)
+            for owner, _, digests in self._uses():
+                for sha in digests:
+                    path = self.blob_dir / sha[:2] / sha
+                    if _is_digest(sha) and path.exists():
+                        self._db.execute("INSERT OR IGNORE INTO blob_owners VALUES (?, ?, ?)",
+                                         (sha, owner, path.stat().st_size))
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
 
     def close(self) -> None:
         with self._lock:
@@ -113,32 +151,146 @@ class Store:
     # -- blobs ------------------------------------------------------------------------------
 
     def blob_path(self, sha256: str) -> Path:
-        if len(sha256) != 64 or any(c not in "0123456789abcdef" for c in sha256):
+        if not _is_digest(sha256):
             raise InvalidArgument(f"'{sha256}' is not a lowercase hex SHA-256 digest")
         return self.blob_dir / sha256[:2] / sha256
 
-    def has_blob(self, sha256: str) -> bool:
-        return self.blob_path(sha256).exists()
+    def owns(self, owner: str, sha256: str) -> bool:
+        """Whether ``owner`` reaches the blob (its file may have been lost: then not)."""
+        path = self.blob_path(sha256)
+        with self._lock:
+            return self._owned(owner, sha256) and path.exists()
 
-    def begin_upload(self) -> "Upload":
-        return Upload(self)
+    def _owned(self, owner: str, sha256: str) -> bool:
+        return bool(self._db.execute("SELECT 1 FROM blob_owners WHERE sha256=? AND owner=?",
+                                     (sha256, owner)).fetchall())
 
-    def put_blob(self, data: bytes) -> str:
-        """Stores bytes; returns the blob's resource name."""
-        upload = self.begin_upload()
+    def begin_upload(self, owner: str) -> "Upload":
+        return Upload(self, owner)
+
+    def put_blob(self, data: bytes, owner: str) -> str:
+        """Stores bytes the daemon made for ``owner``, past their quota if need be (a user's
+        renders and results are never lost); returns the blob's resource name."""
+        upload = self.begin_upload(owner)
         upload.write(data)
         return upload.commit().name
 
-    def read_blob(self, name: str) -> bytes:
-        return self.blob_file(name).read_bytes()
+    def writer(self, owner: str) -> Callable[[bytes], str]:
+        return partial(self.put_blob, owner=owner)
 
-    def blob_file(self, name: str) -> Path:
-        """The file behind ``blobs/{sha256}`` (or a bare digest); NOT_FOUND if absent."""
+    def read_blob(self, name: str, owner: str | None = None) -> bytes:
+        return self.blob_file(name, owner).read_bytes()
+
+    def reader(self, owner: str) -> Callable[[str], bytes]:
+        """Reads only the blobs ``owner`` reaches; any other is NOT_FOUND."""
+        return partial(self.read_blob, owner=owner)
+
+    def blob_file(self, name: str, owner: str | None = None) -> Path:
+        """The file behind ``blobs/{sha256}`` (or a bare digest); NOT_FOUND if absent or, with
+        ``owner``, not theirs: the same message, so that nobody learns what others hold.
+        Without ``owner``: the daemon's own reads (workers' fetches, checkpoints)."""
         sha = name.removeprefix("blobs/")
         path = self.blob_path(sha)
-        if not path.exists():
-            raise NotFound(f"blob '{name}' not found (upload it first)")
+        if not (self.owns(owner, sha) if owner is not None else path.exists()):
+            raise _not_found(sha)
         return path
+
+    def _keep(self, tmp: str, sha256: str, size: int, owner: str, within_quota: bool) -> None:
+        """Moves a verified upload into place, unless its content is there already, and
+        records the owner: under the lock, so that a deletion cannot remove the file between
+        the two."""
+        path = self.blob_path(sha256)
+        with self._lock:
+            if within_quota:
+                self._check_room(owner, size, sha256)
+            if not path.exists():
+                path.parent.mkdir(exist_ok=True)
+                os.chmod(tmp, 0o444)  # a blob never changes: its name is its content
+                os.replace(tmp, path)
+            self._db.execute("INSERT OR IGNORE INTO blob_owners VALUES (?, ?, ?)",
+                             (sha256, owner, size))
+
+    def usage(self, owner: str) -> int:
+        with self._lock:
+            return self._usage(owner)
+
+    def _usage(self, owner: str) -> int:
+        return self._db.execute("SELECT COALESCE(SUM(size), 0) FROM blob_owners WHERE owner=?",
+                                (owner,)).fetchone()[0]
+
+    def check_room(self, owner: str, size: int = 0, sha256: str | None = None) -> None:
+        """RESOURCE_EXHAUSTED when uploading ``sha256`` (``size`` bytes) would take ``owner``
+        past the quota; without a digest, when the quota is used up: new work is refused then,
+        since its results will be stored whatever their size."""
+        with self._lock:
+            self._check_room(owner, size, sha256)
+
+    def _check_room(self, owner: str, size: int, sha256: str | None) -> None:
+        if self.quota is None:
+            return
+        if sha256 is not None and self._owned(owner, sha256):
+            return  # theirs already: it costs nothing more
+        used, quota = self._usage(owner), format_size(self.quota)
+        room = ("delete blobs you no longer need (ListBlobs lists them with what uses them, "
+                "DeleteBlob deletes one)")
+        if sha256 is not None and used + size > self.quota:
+            raise ResourceExhausted(
+                f"blob 'blobs/{sha256}' ({format_size(size)}) would exceed your quota of "
+                f"{quota} ({self.quota} bytes): your blobs use {format_size(used)}; {room}")
+        if sha256 is None and used >= self.quota:
+            raise ResourceExhausted(
+                f"your blobs use {format_size(used)} of your quota of {quota} ({self.quota} "
+                f"bytes): {room} before starting new work")
+
+    def list_blobs(self, owner: str, offset: int, limit: int) -> list[pb.Blob]:
+        rows = self._query("SELECT sha256, size FROM blob_owners WHERE owner=? ORDER BY rowid "
+                           "LIMIT ? OFFSET ?", (owner, limit, offset))
+        uses = self.blobs_in_use(owner) if rows else {}
+        return [pb.Blob(name=f"blobs/{sha}", sha256=sha, size_bytes=size,
+                        used_by=uses.get(sha, [])) for sha, size in rows]
+
+    def blobs_in_use(self, owner: str) -> dict[str, list[str]]:
+        """Digest -> the names of ``owner``'s scenes and jobs that use it."""
+        uses: dict[str, list[str]] = {}
+        for _, name, digests in self._uses(owner):
+            for sha in digests:
+                uses.setdefault(sha, []).append(name)
+        return uses
+
+    def _uses(self, owner: str | None = None) -> Iterator[tuple[str, str, set[str]]]:
+        """(owner, scene or job name, the digests it names) for every scene and job, or
+        ``owner``'s."""
+        where, args = (" WHERE owner=?", (owner,)) if owner is not None else ("", ())
+        for name, who, scene, inputs in self._query(
+                "SELECT name, owner, scene, inputs FROM scenes" + where, args):
+            yield who, name, blob_refs.scene_blobs(pb.Scene.FromString(scene), inputs)
+        results: dict[str, list[pb.JobResult]] = {}
+        for job, result in self._query("SELECT job, result FROM results WHERE job IN "
+                                       "(SELECT name FROM jobs" + where + ")", args):
+            results.setdefault(job, []).append(pb.JobResult.FromString(result))
+        for name, who, job, checkpoint in self._query(
+                "SELECT name, owner, job, checkpoint FROM jobs" + where, args):
+            yield who, name, blob_refs.job_blobs(pb.Job.FromString(job), results.get(name, ()),
+                                                 checkpoint)
+
+    def delete_blob(self, owner: str, name: str) -> None:
+        """Gives up ``owner``'s hold on a blob; the file goes once nobody holds it."""
+        sha = name.removeprefix("blobs/")
+        self.blob_path(sha)  # INVALID_ARGUMENT for a malformed digest
+        with self._lock:
+            if not self._owned(owner, sha):  # even if its file was lost: the row goes
+                raise _not_found(sha)
+        using = self.blobs_in_use(owner).get(sha, [])
+        if using:
+            raise FailedPrecondition(
+                f"blob 'blobs/{sha}' is used by {', '.join(using[:5])}"
+                f"{f' and {len(using) - 5} more' if len(using) > 5 else ''}: delete "
+                f"{'it' if len(using) == 1 else 'them'} first")
+        with self._lock:
+            self._db.execute("DELETE FROM blob_owners WHERE sha256=? AND owner=?", (sha, owner))
+            if not self._db.execute("SELECT 1 FROM blob_owners WHERE sha256=?",
+                                    (sha,)).fetchall():
+                self.blob_path(sha).unlink(missing_ok=True)
 
     # -- scenes -----------------------------------------------------------------------------
 
@@ -298,12 +450,23 @@ class Store:
         return pb.JobResult.FromString(rows[0][0]) if rows else None
 
 
-class Upload:
-    """A blob being written: to a temporary file first, renamed into place once its digest
-    and size check out, so a broken upload never leaves a blob with the wrong content."""
+def _is_digest(s: str) -> bool:
+    return len(s) == 64 and all(c in "0123456789abcdef" for c in s)
 
-    def __init__(self, store: Store) -> None:
-        self.store = store
+
+def _not_found(sha256: str) -> NotFound:
+    """One message for a blob that does not exist and for another user's."""
+    return NotFound(f"blob 'blobs/{sha256}' not found (upload it first)")
+
+
+class Upload:
+    """A blob being written for ``owner``: to a temporary file first, kept once its digest and
+    size check out, so a broken upload never leaves a blob with the wrong content. Content
+    already on disk is still received and checked (that proves the uploader has it), then
+    only its new owner is recorded."""
+
+    def __init__(self, store: Store, owner: str) -> None:
+        self.store, self.owner = store, owner
         try:
             fd, self.tmp = tempfile.mkstemp(dir=store.blob_dir, prefix=".upload-")
         except OSError as exc:
@@ -326,7 +489,10 @@ class Upload:
                 raise DiskFull() from None
             raise
 
-    def commit(self, sha256: str | None = None, size: int | None = None) -> pb.Blob:
+    def commit(self, sha256: str | None = None, size: int | None = None,
+               within_quota: bool = False) -> pb.Blob:
+        """``within_quota``: RESOURCE_EXHAUSTED rather than take the owner past their quota
+        (uploads; the daemon's own outputs are kept regardless)."""
         try:
             self.file.close()
         except OSError as exc:
@@ -343,10 +509,7 @@ class Upload:
             if size is not None and self.size != size:
                 raise InvalidArgument(f"upload of {sha256} declared {size} bytes, got "
                                       f"{self.size}")
-            path = self.store.blob_path(got)
-            path.parent.mkdir(exist_ok=True)
-            os.chmod(self.tmp, 0o444)  # a blob never changes: its name is its content
-            os.replace(self.tmp, path)
+            self.store._keep(self.tmp, got, self.size, self.owner, within_quota)
             return pb.Blob(name=f"blobs/{got}", sha256=got, size_bytes=self.size)
         finally:
             self.abort()

@@ -23,7 +23,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Callable
 
-from .devices import Placement, worker_environment
+from .devices import Placement, format_size, worker_environment
 
 log = logging.getLogger("matoptd.workers")
 
@@ -159,8 +159,8 @@ class Worker:
         the machine (and everybody's jobs) down with it."""
         used = self.memory()
         if used > self.memory_limit:
-            self.kill(f"was stopped: its memory ({_size(used)}) exceeded the worker memory "
-                      f"limit of {_size(self.memory_limit)}", "memory")
+            self.kill(f"was stopped: its memory ({format_size(used)}) exceeded the worker "
+                      f"memory limit of {format_size(self.memory_limit)}", "memory")
 
     # -- calls ------------------------------------------------------------------------------
 
@@ -234,10 +234,3 @@ def describe_exit(code: int) -> str:
         return f"died with {name}{extra}"
     return f"exited with status {code}"
 
-
-def _size(n: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"

@@ -114,10 +114,11 @@ def info(as_json: bool) -> None:
 
 
 def _register() -> None:
-    from matopt.cli import demo, job, scene
+    from matopt.cli import blob, demo, job, scene
 
     cli.add_command(scene.scene)
     cli.add_command(job.job)
+    cli.add_command(blob.blob)
     cli.add_command(demo.demo)
 
 

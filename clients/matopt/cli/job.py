@@ -278,7 +278,11 @@ _control("cancel", "CancelJob", pb.CancelJobRequest,
 @job.command()
 @click.argument("name", metavar="JOB", type=JOB)
 def delete(name: str) -> None:
-    """Delete a job and its results."""
+    """Delete a job and its results.
+
+    The images and files of its results stay among your blobs: 'matopt blob rm --unused'
+    deletes the blobs no scene or job of yours uses any more.
+    """
     connected().jobs.DeleteJob(pb.DeleteJobRequest(name=name))
     note(f"deleted {name}")
 

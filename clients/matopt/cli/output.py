@@ -72,12 +72,14 @@ def number(value: float) -> str:
 
 
 def size(n: int) -> str:
-    """A byte count as people read it: 812 B, 3.4 KiB, 2.9 MiB."""
+    """A byte count as people read it: 812 B, 3.4 KiB, 2.9 MiB, 20.0 GiB."""
     if n < 1024:
         return f"{n} B"
     if n < 1024**2:
         return f"{n / 1024:.1f} KiB"
-    return f"{n / 1024**2:.1f} MiB"
+    if n < 1024**3:
+        return f"{n / 1024**2:.1f} MiB"
+    return f"{n / 1024**3:.1f} GiB"
 
 
 def uploading(label: str, n: int) -> None:

@@ -17,7 +17,7 @@ from matopt.client import resource_name
 
 
 class ResourceName(click.ParamType):
-    """A scene or job argument: the full name (``jobs/abc``) or the bare id (``abc``)."""
+    """A scene, job or blob argument: the full name (``jobs/abc``) or the bare id (``abc``)."""
 
     def __init__(self, collection: str) -> None:
         self.collection = collection
@@ -31,6 +31,7 @@ class ResourceName(click.ParamType):
 
 SCENE = ResourceName("scenes")
 JOB = ResourceName("jobs")
+BLOB = ResourceName("blobs")
 
 
 def _split(value: str, syntax: str, param, ctx, kind: click.ParamType) -> tuple[str, str]:

@@ -103,7 +103,11 @@ def show(name: str, as_json: bool) -> None:
 @scene.command()
 @click.argument("name", metavar="SCENE", type=SCENE)
 def delete(name: str) -> None:
-    """Delete a scene."""
+    """Delete a scene.
+
+    Its files stay among your blobs: 'matopt blob rm --unused' deletes the blobs no scene or
+    job of yours uses any more.
+    """
     connected().scenes.DeleteScene(pb.DeleteSceneRequest(name=name))
     note(f"deleted {name}")
 
