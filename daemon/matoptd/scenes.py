@@ -61,6 +61,7 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
         raise InvalidArgument(str(exc)) from None
     if main not in paths:
         raise InvalidArgument(f"main_file '{main}' is not among the bundle's files")
+    _no_file_as_folder(paths)
     for path, sha in paths.items():
         if not store.has_blob(sha):
             raise FailedPrecondition(f"bundle file '{path}' (sha256 {sha}) has not been uploaded")
@@ -77,6 +78,17 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     except bundle.BundleError as exc:
         raise InvalidArgument(str(exc)) from None
     return main, paths
+
+
+def _no_file_as_folder(paths: dict[str, str]) -> None:
+    """A bundle is laid out as a directory tree: 'a' cannot be a file and a folder at once."""
+    for path in sorted(paths):
+        folder = path.rpartition("/")[0]
+        while folder:
+            if folder in paths:
+                raise InvalidArgument(f"bundle lists a file '{folder}' and also '{path}', "
+                                      f"which needs '{folder}' to be a folder")
+            folder = folder.rpartition("/")[0]
 
 
 def loadable_path(main: str) -> str:
