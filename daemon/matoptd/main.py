@@ -169,8 +169,9 @@ async def serve(args: argparse.Namespace) -> None:
     await stop.wait()
     log.info("shutting down: finishing the current iteration")
     await health_servicer.enter_graceful_shutdown()
-    await server.stop(grace=5)
-    await asyncio.to_thread(runner.stop)
+    # Side by side: open calls (a watch stream never ends by itself) get their grace while
+    # the workers finish their iterations, so a shutdown takes the longer of the two, not both.
+    await asyncio.gather(server.stop(grace=5), asyncio.to_thread(runner.stop))
     store.close()
     log.info("stopped")
 
