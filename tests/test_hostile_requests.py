@@ -21,9 +21,10 @@ from test_faults import WALLS, cornell_job, two_users, wait_worker, worker  # no
 
 from test_image_headers import png_header_only
 
-# 32x32 px at 4096 spp: 4.2 M samples, well within the default limit of 2^26 a render, and
-# about 20 s for one iteration (render and gradient) on two CPU cores.
-LONG_SPP = 4096
+# 32x32 px at 65536 spp: 2^26 samples, just within the default limit of a render call; one
+# iteration (render and gradient) takes minutes on CPU cores, however many. Memory stays
+# small: Mitsuba traces the samples in one kernel, without arrays of their size.
+LONG_SPP = 65536
 
 
 def rpc_error(call, *args) -> grpc.RpcError:
@@ -178,7 +179,7 @@ def test_the_other_users_job_ran_meanwhile(users, bobs_job):
 # -- a cancel or a shutdown inside a long render ----------------------------------------------
 
 def long_job(stubs: Stubs) -> pb.Job:
-    """A job whose every iteration takes about 20 s, once it is in its first one."""
+    """A job in the first of its iterations, each of which takes minutes."""
     job = cornell_job(stubs, 3, spp=LONG_SPP)
     wait_state(stubs, job.name, (pb.RUNNING,), timeout=120)
     time.sleep(1.0)  # the load returned; the first iteration is under way
