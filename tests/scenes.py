@@ -120,6 +120,38 @@ def png(pixels) -> bytes:
             + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
 
 
+def exr(pixels) -> bytes:
+    """An uncompressed float32 RGB OpenEXR file of an (H, W, 3) linear array, without Mitsuba:
+    NaN and Inf stay as they are."""
+    import struct
+
+    import numpy as np
+
+    rgb = np.asarray(pixels, dtype="<f4")
+    h, w = rgb.shape[:2]
+
+    def attribute(name: str, kind: str, value: bytes) -> bytes:
+        return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
+
+    channels = b"".join(c + b"\0" + struct.pack("<iB3xii", 2, 0, 1, 1) for c in (b"B", b"G", b"R"))
+    window = struct.pack("<iiii", 0, 0, w - 1, h - 1)
+    header = (b"\x76\x2f\x31\x01" + struct.pack("<I", 2)
+              + attribute("channels", "chlist", channels + b"\0")
+              + attribute("compression", "compression", b"\0")
+              + attribute("dataWindow", "box2i", window)
+              + attribute("displayWindow", "box2i", window)
+              + attribute("lineOrder", "lineOrder", b"\0")
+              + attribute("pixelAspectRatio", "float", struct.pack("<f", 1))
+              + attribute("screenWindowCenter", "v2f", struct.pack("<ff", 0, 0))
+              + attribute("screenWindowWidth", "float", struct.pack("<f", 1)) + b"\0")
+    lines = [struct.pack("<ii", y, 12 * w) + rgb[y, :, ::-1].T.tobytes() for y in range(h)]
+    offsets, at = [], len(header) + 8 * h
+    for line in lines:
+        offsets.append(at)
+        at += len(line)
+    return header + struct.pack(f"<{h}Q", *offsets) + b"".join(lines)
+
+
 def vol(grid, lo: float = -0.8, hi: float = 0.8) -> bytes:
     """Mitsuba's binary .vol grid (float32, X fastest) of a (Z, Y, X, C) array; Mitsuba places
     it in the bounding box the header gives ([lo, hi]^3, the cube of grid_volume())."""

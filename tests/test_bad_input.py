@@ -4,12 +4,13 @@ serving everyone else."""
 from __future__ import annotations
 
 import grpc
+import numpy as np
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
-from scenes import MESH_SCENE, QUAD_OBJ, create_scene, upload
+from scenes import MESH_SCENE, QUAD_OBJ, create_scene, exr, upload
 
 
 def rpc_error(call, *args) -> grpc.RpcError:
@@ -89,7 +90,8 @@ def test_unreadable_image_is_named(stubs, cornell):
     err = rpc_error(stubs.jobs.CreateJob, job_request(
         scene, [pb.Reference(blob=f"blobs/{sha}", filename="holiday.png")]))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert "reference image 'holiday.png' cannot be read" in err.details()
+    assert err.details() == ("reference image 'holiday.png' cannot be read: not a PNG, JPEG "
+                             "or OpenEXR file")
 
 
 def test_unknown_parameter_key_suggests_the_right_one(stubs, cornell):
@@ -160,3 +162,104 @@ def test_a_scene_in_use_is_not_deleted(stubs, cornell):
     stubs.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))
     err = rpc_error(stubs.scenes.GetScene, pb.GetSceneRequest(name=scene.name))
     assert err.code() == grpc.StatusCode.NOT_FOUND
+
+
+def test_reference_without_a_finite_pixel_is_refused(stubs, cornell):
+    """An all-NaN image would be masked out entirely and every loss would be 0."""
+    scene, _ = cornell
+    nan = np.full((32, 32, 3), np.nan, np.float32)
+    nan[5, 5] = [np.inf, 0.0, 0.0]
+    sha = upload(stubs, exr(nan))
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=f"blobs/{sha}", filename="nan.exr")]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "reference image 'nan.exr' has no usable pixel" in err.details()
+    assert "32x32 pixels is NaN or infinite" in err.details()
+
+
+@pytest.mark.parametrize("field,message", [
+    ("schedule", "spec.schedule 99 is not a Schedule: expected one of COSINE (1), CONSTANT (2)"),
+    ("sensor_mode", "spec.sensor_mode 99 is not a SensorMode"),
+    ("loss", "spec.loss 99 is not a Loss"),
+])
+def test_unknown_enum_values_in_a_job(stubs, cornell, field, message):
+    scene, ref = cornell
+    err = rpc_error(stubs.jobs.CreateJob, job_request(
+        scene, [pb.Reference(blob=ref.exr_blob)], **{field: 99}))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.details().startswith(message)
+
+
+def test_unknown_which_and_state_filter(stubs):
+    err = rpc_error(stubs.jobs.GetJobResult, pb.GetJobResultRequest(name="jobs/x", which=99))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.details().startswith("which 99 is not a Which: expected one of BEST (1), LAST")
+    err = rpc_error(stubs.jobs.ListJobs, pb.ListJobsRequest(state=99))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.details().startswith("state 99 is not a State")
+
+
+@pytest.mark.parametrize("token", ["99999999999999999999999", "-1", "\u0661\u0662", " 3",
+                                   "1_0", "abc"])
+def test_malformed_page_token(stubs, token):
+    for call, request in ((stubs.jobs.ListJobs, pb.ListJobsRequest(page_token=token)),
+                          (stubs.scenes.ListScenes, pb.ListScenesRequest(page_token=token))):
+        err = rpc_error(call, request)
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert f"invalid page_token '{token}'" in err.details()
+
+
+def test_nul_bytes_are_refused_naming_the_field(stubs, cornell):
+    scene, ref = cornell
+    xml = upload(stubs, b"<scene version='3.0.0'/>")
+    for call, request, field in (
+            (stubs.jobs.GetJob, pb.GetJobRequest(name="jobs/a\0b"), "name"),
+            (stubs.jobs.CreateJob, job_request(scene, [pb.Reference(blob=ref.exr_blob)],
+                                               keys=["red.reflectance.value\0"]),
+             "spec.parameters[0].key"),
+            (stubs.scenes.CreateScene, pb.CreateSceneRequest(
+                main_file="s.xml", files=[pb.BundleFile(path="s.xml", sha256=xml),
+                                          pb.BundleFile(path="mesh\0.obj", sha256=xml)]),
+             "files[1].path"),
+            (stubs.scenes.CreateScene, pb.CreateSceneRequest(overrides={"resx": "3\x002"}),
+             "overrides['resx']")):
+        err = rpc_error(call, request)
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT, (field, err)
+        assert err.details().startswith(f"{field} contains a NUL byte"), err.details()
+
+
+@pytest.mark.parametrize("call,request_,message", [
+    ("jobs.GetJob", pb.GetJobRequest(name="j" * 300), "name is 300 characters long; at "
+     "most 128"),
+    ("scenes.CreateScene", pb.CreateSceneRequest(display_name="d" * 300),
+     "display_name is 300 characters long; at most 256"),
+    ("scenes.CreateScene", pb.CreateSceneRequest(request_id="r" * 300),
+     "request_id is 300 characters long; at most 128"),
+])
+def test_overlong_names(stubs, call, request_, message):
+    service, method = call.split(".")
+    err = rpc_error(getattr(getattr(stubs, service), method), request_)
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.details().startswith(message)
+
+
+def test_a_bundle_file_cannot_also_be_a_folder(stubs):
+    xml = upload(stubs, b"<scene version='3.0.0'/>")
+    obj = upload(stubs, QUAD_OBJ.encode())
+    for order in ((("meshes", obj), ("meshes/quad.obj", obj)),
+                  (("meshes/quad.obj", obj), ("meshes", obj))):
+        err = rpc_error(stubs.scenes.CreateScene, pb.CreateSceneRequest(
+            main_file="s.xml", files=[pb.BundleFile(path="s.xml", sha256=xml)]
+            + [pb.BundleFile(path=p, sha256=sha) for p, sha in order]))
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+        assert ("bundle lists a file 'meshes' and also 'meshes/quad.obj', which needs "
+                "'meshes' to be a folder") in err.details()
+
+
+def test_render_spp_that_mitsuba_cannot_render(stubs, cornell):
+    scene, _ = cornell
+    err = rpc_error(stubs.scenes.RenderScene, pb.RenderSceneRequest(name=scene.name,
+                                                                    spp=2**31 - 1))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "spp 2,147,483,647 on sensor 0's 32x32 px film" in err.details()
+    assert "fewer than 2^32" in err.details()

@@ -113,9 +113,10 @@ def image_to_pb(image: api.Image, put_blob: PutBlob) -> pb.Image:
 
 # -- jobs -------------------------------------------------------------------------------------
 
-def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob
-                 ) -> api.JobSettings:
-    """The engine's settings of a job whose spec was validated and defaulted."""
+def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
+                 max_samples: int = 0) -> api.JobSettings:
+    """The engine's settings of a job whose spec was validated and defaulted; ``max_samples``
+    is the daemon's limit on one render call (matoptd --max-samples)."""
     references = [api.ReferenceInput(r.sensor if r.HasField("sensor") else i,
                                      r.blob.removeprefix("blobs/"), r.filename or r.blob)
                   for i, r in enumerate(spec.references)]
@@ -134,7 +135,8 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob
         min_error=spec.min_error, spp=spec.spp, seed=spec.seed,
         cosine=spec.schedule != pb.CONSTANT, step_per_sensor=spec.sensor_mode == pb.STEP_PER_SENSOR,
         clamp=spec.clamp, resolution=spec.resolution, truth=truth,
-        image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64)
+        image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64,
+        max_samples=max_samples)
 
 
 def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]]) -> pb.IterationRecord:

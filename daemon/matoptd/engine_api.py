@@ -164,6 +164,30 @@ class JobSettings:
     truth: dict[str, np.ndarray] = field(default_factory=dict)  # flat values, for errors
     image_error_every: int = 0
     image_error_spp: int = 64
+    # The most samples (film pixels x spp) one render call may take; 0: no limit. Results
+    # render at RESULT_SPP, or fewer on a film so large that RESULT_SPP would exceed this.
+    max_samples: int = 0
+
+
+RESULT_SPP = 64  # results are renders to look at, off the clock
+
+
+def reference_film(height: int, reference_width: int, reference_height: int
+                   ) -> tuple[int, int]:
+    """The film (width, height) a sensor renders at for a reference: the given height, the
+    width its aspect ratio asks for. Daemon and engine both size films by this rule: the
+    daemon to estimate a job's cost before a worker sees it, the engine to render."""
+    return max(1, round(height * reference_width / reference_height)), height
+
+
+def result_spp(spp: int, pixels: int, max_samples: int) -> int:
+    """Samples per pixel of a result render: RESULT_SPP (or the job's own spp, if more), but
+    never more samples in one call than ``max_samples`` allows, nor fewer than the job's
+    iterations used, which the daemon admitted."""
+    wanted = max(RESULT_SPP, spp)
+    if max_samples <= 0:
+        return wanted
+    return max(spp, min(wanted, max_samples // max(1, pixels)))
 
 
 @dataclass

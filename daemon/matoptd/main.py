@@ -3,10 +3,14 @@
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
             [--devices 0,1 | --workers N] [--worker-memory SIZE] [--watchdog SECONDS]
             [--quota SIZE] [--tls-cert FILE --tls-key FILE] [--port-file FILE]
+            [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
+            [--max-reference-pixels N] [--max-reference-memory SIZE]
+            [--max-jobs-per-user N] [--max-tasks-per-user N]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
 MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_WORKER_MEMORY,
-MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY).
+MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and MATOPTD_MAX_SAMPLES etc.
+for the limits).
 
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
@@ -27,7 +31,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from . import __version__, devices
+from . import __version__, admission, devices
 from .auth import Authenticator, load_tokens
 from .runner import Runner
 from .server import Service, add_services
@@ -36,6 +40,21 @@ from .workers import Worker
 
 log = logging.getLogger("matoptd")
 MAX_MESSAGE = 64 << 20
+
+# The admission limits (admission.Limits): what one request or one user may ask of the shared
+# workers. Sizes take suffixes (4G, 512M).
+LIMIT_FLAGS = {
+    "max_samples": (int, "samples (film pixels x spp) one render call may take; 2^26 is "
+                    "4096x4096 at 4 spp or 1024x1024 at 64 spp"),
+    "max_film_side": (int, "pixels on a side of any film a request renders"),
+    "max_film_memory": (devices.parse_size, "memory of all films one request renders "
+                        "(16 bytes a pixel)"),
+    "max_reference_pixels": (int, "pixels of one reference image, read from its header"),
+    "max_reference_memory": (devices.parse_size, "memory to decode one reference image"),
+    "max_jobs_per_user": (int, "queued or running jobs of one user"),
+    "max_tasks_per_user": (int, "scene requests (CreateScene, RenderScene, CreateJob) of one "
+                           "user in progress at once"),
+}
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -72,6 +91,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "20G; past it uploads are refused, and new scenes, renders and jobs "
                         "until the user deletes blobs; results of running jobs are still "
                         "kept (default: no limit)")
+    for name, (parse, text) in LIMIT_FLAGS.items():
+        default = getattr(admission.Limits, name)
+        size = parse is devices.parse_size
+        p.add_argument(admission.flag(name), type=parse, metavar="SIZE" if size else "N",
+                       default=env(f"MATOPTD_{name.upper()}", default),
+                       help=f"{text} (default {f'{default >> 30}G' if size else f'{default:,}'})")
     p.add_argument("--slice", type=float, default=None, help=argparse.SUPPRESS)
     p.add_argument("--tls-cert", type=Path, default=env("MATOPTD_TLS_CERT"))
     p.add_argument("--tls-key", type=Path, default=env("MATOPTD_TLS_KEY"))
@@ -117,13 +142,17 @@ async def serve(args: argparse.Namespace) -> None:
         if quota < 1:
             raise SystemExit(f"matoptd: --quota must be at least 1 byte, got '{args.quota}'")
 
+    try:
+        limits = admission.Limits(**{name: getattr(args, name) for name in LIMIT_FLAGS})
+    except ValueError as exc:
+        raise SystemExit(f"matoptd: {exc}")
     args.data_dir.mkdir(parents=True, exist_ok=True)
     store = Store(args.data_dir, quota)
     runner = await asyncio.to_thread(start_workers, args, store)
 
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                                       ("grpc.max_send_message_length", MAX_MESSAGE)])
-    names = add_services(server, Service(store, runner, Authenticator(tokens)))
+    names = add_services(server, Service(store, runner, Authenticator(tokens), limits))
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
@@ -159,8 +188,9 @@ async def serve(args: argparse.Namespace) -> None:
     await health_task
     log.info("shutting down: finishing the current iteration")
     await health_servicer.enter_graceful_shutdown()
-    await server.stop(grace=5)
-    await asyncio.to_thread(runner.stop)
+    # Side by side: open calls (a watch stream never ends by itself) get their grace while
+    # the workers finish their iterations, so a shutdown takes the longer of the two, not both.
+    await asyncio.gather(server.stop(grace=5), asyncio.to_thread(runner.stop))
     store.close()
     log.info("stopped")
 
@@ -215,7 +245,7 @@ def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
                       args.variant or ("cuda_ad_rgb" if p.cuda is not None else "llvm_ad_rgb"),
                       args.data_dir, limit, store.read_blob)
                for i, p in enumerate(places)]
-    runner = Runner(store, workers, args.watchdog, args.slice)
+    runner = Runner(store, workers, args.watchdog, args.slice, args.max_samples)
     return runner, runner.start()
 
 

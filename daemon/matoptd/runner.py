@@ -86,8 +86,9 @@ class _Watchers:
 
 class Runner:
     def __init__(self, store: Store, workers: list[Worker], watchdog: float,
-                 slice_seconds: float | None = None) -> None:
+                 slice_seconds: float | None = None, max_samples: int = 0) -> None:
         self.store = store
+        self.max_samples = max_samples  # of one render call; results keep to it too
         self.workers = {w.name: w for w in workers}
         self.watchdog = watchdog
         self.scheduler = Scheduler(**({"slice_seconds": slice_seconds}
@@ -397,7 +398,7 @@ class Runner:
     def _load(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
         scene = self.store.get_scene(job.owner, job.spec.scene)
         settings = convert.job_settings(job.spec, self.scene_input(scene),
-                                        self.store.read_blob)
+                                        self.store.read_blob, self.max_samples)
         started: api.Started = engine.start(job.name, settings,
                                             self.store.read_checkpoint(job.name))
         self._shapes[job.name] = started.shapes

@@ -66,6 +66,7 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
         raise InvalidArgument(str(exc)) from None
     if main not in paths:
         raise InvalidArgument(f"main_file '{main}' is not among the bundle's files")
+    _no_file_as_folder(paths)
     for path, sha in paths.items():
         # Another user's upload is as absent as one never made: nothing is read before this.
         if not store.owns(owner, sha):
@@ -91,6 +92,17 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     except (bundle.BundleError, meshes.MeshError) as exc:
         raise InvalidArgument(str(exc)) from None
     return main, paths, prepared
+
+
+def _no_file_as_folder(paths: dict[str, str]) -> None:
+    """A bundle is laid out as a directory tree: 'a' cannot be a file and a folder at once."""
+    for path in sorted(paths):
+        folder = path.rpartition("/")[0]
+        while folder:
+            if folder in paths:
+                raise InvalidArgument(f"bundle lists a file '{folder}' and also '{path}', "
+                                      f"which needs '{folder}' to be a folder")
+            folder = folder.rpartition("/")[0]
 
 
 def loadable_path(main: str) -> str:

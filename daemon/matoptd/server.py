@@ -16,12 +16,13 @@ import math
 import uuid
 
 import grpc
+from google.protobuf.message import Message
 
 from matoptd import __version__
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from . import blob_refs, convert, scenes
+from . import admission, blob_refs, convert, fields, scenes
 from .auth import Authenticator
 from .errors import FailedPrecondition, InvalidArgument, UserError
 from .runner import FINAL, Runner, now
@@ -57,11 +58,17 @@ async def _user(self, context) -> str:
     return user
 
 
+async def _check_fields(request) -> None:
+    if isinstance(request, Message):  # not the chunk stream of UploadBlob
+        fields.check(request)
+
+
 def unary(fn):
     """An RPC with one response, called as fn(self, request, context, user)."""
     @functools.wraps(fn)
     async def wrapper(self, request, context):
         user = await _user(self, context)
+        await _guard(context, lambda: _check_fields(request))
         return await _guard(context, lambda: fn(self, request, context, user))
     return wrapper
 
@@ -71,6 +78,7 @@ def streaming(fn):
     @functools.wraps(fn)
     async def wrapper(self, request, context):
         user = await _user(self, context)
+        await _guard(context, lambda: _check_fields(request))
         gen = fn(self, request, context, user)
         while True:
             item = await _guard(context, lambda: _anext(gen))
@@ -93,13 +101,11 @@ async def _anext(gen):
 def _page(token: str, size: int) -> tuple[int, int]:
     if size < 0:
         raise InvalidArgument(f"page_size must be >= 0, got {size}")
-    try:
-        offset = int(token) if token else 0
-        if offset < 0:
-            raise ValueError
-    except ValueError:
-        raise InvalidArgument(f"invalid page_token '{token}'") from None
-    return offset, min(size or DEFAULT_PAGE, MAX_PAGE)
+    # Tokens are the offsets _next_token wrote: decimal digits that SQLite can take.
+    if token and not (token.isascii() and token.isdigit() and len(token) <= 18):
+        raise InvalidArgument(f"invalid page_token '{token}': pass the next_page_token of "
+                              "the previous page, or nothing for the first")
+    return int(token or 0), min(size or DEFAULT_PAGE, MAX_PAGE)
 
 
 def _next_token(offset: int, limit: int, got: int) -> str:
@@ -113,11 +119,17 @@ def _name(prefix: str, name: str) -> str:
     return name if name.startswith(prefix + "/") else f"{prefix}/{name}"
 
 
+def _films(scene: pb.Scene) -> dict[int, tuple[int, int]]:
+    return {s.index: (s.width, s.height) for s in scene.sensors}
+
+
 class Service:
     """State shared by the servicers."""
 
-    def __init__(self, store: Store, runner: Runner, auth: Authenticator) -> None:
+    def __init__(self, store: Store, runner: Runner, auth: Authenticator,
+                 limits: admission.Limits = admission.Limits()) -> None:
         self.store, self.runner, self.auth = store, runner, auth
+        self.limits, self.tasks = limits, admission.TaskSlots(limits)
 
 
 # -- blobs -----------------------------------------------------------------------------------
@@ -182,6 +194,7 @@ class Blobs(rpc.BlobsServicer):
 class Scenes(rpc.ScenesServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
+        self.limits, self.tasks = svc.limits, svc.tasks
 
     @unary
     async def CreateScene(self, request, context, user):
@@ -209,7 +222,8 @@ class Scenes(rpc.ScenesServicer):
             loadable,
             {**paths, loadable: self.store.put_blob(prepared.xml, user).removeprefix("blobs/")},
             prepared.overrides, main)
-        described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
+        with self.tasks.hold(user):
+            described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
         scene = pb.Scene(name=f"scenes/{uuid.uuid4().hex[:12]}", display_name=display,
                          main_file=main, files=request.files, overrides=prepared.overrides,
                          warnings=prepared.warnings,
@@ -262,7 +276,9 @@ class Scenes(rpc.ScenesServicer):
         params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
         for key, values in render.values.items():
             _check_value(key, values, params, scene)
-        images = await self.runner.task(lambda engine: engine.render(inputs, render))
+        admission.admit_render(render, _films(scene), self.limits)
+        with self.tasks.hold(user):
+            images = await self.runner.task(lambda engine: engine.render(inputs, render))
         return pb.RenderSceneResponse(images=[convert.image_to_pb(i, self.store.writer(user))
                                               for i in images])
 
@@ -304,8 +320,6 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
         raise InvalidArgument(f"spp must be >= 1, got {spec.spp}")
     if spec.HasField("min_error") and not math.isfinite(spec.min_error):
         raise InvalidArgument(f"min_error must be finite, got {spec.min_error}")
-    if spec.loss not in pb.Loss.values():
-        raise InvalidArgument(f"unknown loss {spec.loss}")
     if spec.loss == pb.MEAN_BIAS_ERROR:
         raise InvalidArgument("mean_bias_error is a diagnostic, not an objective: minimizing "
                               "it drives the render to black; use mse, mae or dual_buffer")
@@ -388,6 +402,7 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
 class Jobs(rpc.JobsServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
+        self.limits, self.tasks = svc.limits, svc.tasks
 
     @unary
     async def CreateJob(self, request, context, user):
@@ -395,6 +410,7 @@ class Jobs(rpc.JobsServicer):
             existing = self.store.job_by_request(user, request.request_id)
             if existing:
                 return existing
+        self._admit_another(user)
         scene = self.store.get_scene(user, _name("scenes", request.spec.scene))
         self.store.check_room(user)
         # Before any other check: another user's blob must fail exactly as a missing one.
@@ -407,14 +423,25 @@ class Jobs(rpc.JobsServicer):
         # Decoding every value now refuses a malformed .npy here, not when the job loads.
         settings = convert.job_settings(spec, self.runner.scene_input(scene),
                                         self.store.reader(user))
-        await self.runner.task(lambda engine: engine.check_references(settings.references))
+        estimate = admission.admit_job(settings, _films(scene), self.store.blob_file,
+                                       self.limits)
+        with self.tasks.hold(user):
+            await self.runner.task(lambda engine: engine.check_references(settings.references))
+        self._admit_another(user)  # again: other requests of this user may have come first
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
                      owner=user, best_iteration=-1)
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)
         self.runner.submit(job)
+        log.info("%s of %s admitted: %s", job.name, user, estimate.summary)
         return job
+
+    def _admit_another(self, user: str) -> None:
+        """Refuses a user's job beyond --max-jobs-per-user queued or running ones."""
+        active = self.store.list_jobs(user, 0, self.limits.max_jobs_per_user,
+                                      (pb.QUEUED, pb.RUNNING))
+        admission.check_jobs(user, len(active), self.limits)
 
     def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec) -> None:
         """A restart: parameters without an initial value of their own start where another
@@ -458,7 +485,10 @@ class Jobs(rpc.JobsServicer):
 
     @unary
     async def ResumeJob(self, request, context, user):
-        return self.runner.resume(user, _name("jobs", request.name))
+        name = _name("jobs", request.name)
+        if self.store.get_job(name, user).state in (pb.PAUSED, pb.INTERRUPTED):
+            self._admit_another(user)  # it queues again
+        return self.runner.resume(user, name)
 
     @unary
     async def CancelJob(self, request, context, user):

@@ -16,7 +16,8 @@ from ..engine_api import InvalidInput
 def read_reference(path: str, name: str) -> np.ndarray:
     """Reads PNG/JPEG (sRGB, linearized) or EXR (already linear) as an (H, W, 3) float array.
 
-    Nothing is clamped: HDR references keep their highlights.
+    Nothing is clamped: HDR references keep their highlights. An image without a single
+    finite pixel is refused.
     """
     try:
         bitmap = mi.Bitmap(path)
@@ -25,7 +26,12 @@ def read_reference(path: str, name: str) -> np.ndarray:
                               f"OpenEXR: {str(exc).strip().splitlines()[-1]}") from None
     bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
                             srgb_gamma=False)
-    return np.array(bitmap, dtype=np.float32)
+    pixels = np.array(bitmap, dtype=np.float32)
+    # NaN/Inf pixels are masked out of the loss; with none left, every loss would be 0.
+    if not np.isfinite(pixels).all(axis=2).any():
+        raise InvalidInput(f"reference image '{name}' has no usable pixel: every one of its "
+                           f"{pixels.shape[1]}x{pixels.shape[0]} pixels is NaN or infinite")
+    return pixels
 
 
 def fit(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -26,8 +26,6 @@ from .. import engine_api as api
 from . import diagnosis, images, parameters, scene as scenes, scene_export
 from .optimize import Best, Config, Optimization, Reference, Setting
 
-RESULT_SPP = 64  # renders in results are off the clock; enough samples to look at
-
 
 @dataclass
 class Run:
@@ -38,6 +36,7 @@ class Run:
     overrides: dict[str, str]
     shapes: dict[str, list[int]]
     kinds: dict[str, str]
+    max_samples: int = 0  # of one render call (settings.max_samples)
 
 
 class MitsubaEngine:
@@ -187,7 +186,7 @@ class MitsubaEngine:
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in opt.settings}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in opt.settings}
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
-                             shapes, kinds)
+                             shapes, kinds, settings.max_samples)
         return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
                            list(opt.references), opt.notes, shapes, kinds)
 
@@ -274,8 +273,8 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
     for index, (path, name) in sorted(files.items()):
         picture = images.read_reference(str(path), name)
         film = sensors[index].film().crop_size()
-        height = settings.resolution or int(film[1])
-        width = max(1, round(height * picture.shape[1] / picture.shape[0]))
+        width, height = api.reference_film(settings.resolution or int(film[1]),
+                                           picture.shape[1], picture.shape[0])
         if (width, height) != (int(film[0]), int(film[1])):
             key = _film_key(params, sensors[index])
             if key is None:
@@ -301,18 +300,19 @@ def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
     |optimized - reference|), optimized textures as images, and the optimized scene. Initial
     and reference images are made once and shared."""
     opt = run.opt
-    spp = max(RESULT_SPP, opt.spp)
-    shared = {}
+    shared, spp = {}, {}
     for sensor, ref in opt.references.items():
         reference = np.array(ref.image, dtype=np.float32)
-        shared[sensor] = (reference, [image(opt.render(opt.initial, sensor, spp), sensor,
-                                            "initial"),
+        spp[sensor] = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1],
+                                     run.max_samples)
+        shared[sensor] = (reference, [image(opt.render(opt.initial, sensor, spp[sensor]),
+                                            sensor, "initial"),
                                       image(reference, sensor, "reference")])
     out = []
     for which, it in chosen:
         images_ = []
         for sensor, (reference, (first, ref_image)) in shared.items():
-            optimized = opt.render(it.values, sensor, spp)
+            optimized = opt.render(it.values, sensor, spp[sensor])
             error = np.abs(optimized - reference) * opt.references[sensor].mask()
             images_ += [first, image(optimized, sensor, "optimized"), ref_image,
                         image(error, sensor, "error")]
