@@ -263,3 +263,54 @@ def test_render_spp_that_mitsuba_cannot_render(stubs, cornell):
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "spp 2,147,483,647 on sensor 0's 32x32 px film" in err.details()
     assert "fewer than 2^32" in err.details()
+
+
+def test_a_bundle_cannot_take_the_daemons_own_file_names(stubs):
+    """The daemon writes a prepared copy of each scene's XML beside it: a bundle file of that
+    name could otherwise be written through, altering a stored blob."""
+    xml = b"<scene version='3.0.0'/>"
+    err = rpc_error(create_scene, stubs, {".matopt-scene.xml": xml}, ".matopt-scene.xml")
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "'.matopt-scene.xml'" in err.details() and "reserved" in err.details()
+
+
+def test_stored_blobs_are_read_only_and_match_their_names(stubs, daemon, cornell):
+    """After scenes, renders and jobs, every stored file still hashes to its own name, and none
+    can be written to."""
+    import hashlib
+    import os
+    import stat
+
+    scene, ref = cornell
+    job = stubs.jobs.CreateJob(job_request(scene, [pb.Reference(blob=ref.exr_blob)],
+                                           iterations=2))
+    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    blobs = [p for p in (daemon.data_dir / "blobs").rglob("*") if p.is_file()
+             and not p.name.startswith(".")]
+    assert len(blobs) > 5
+    for path in blobs:
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == path.name, path
+        assert not os.stat(path).st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH), path
+
+
+@pytest.mark.parametrize("data", [b"not numpy at all", np.lib.format.MAGIC_PREFIX + b"\x01",
+                                  None])
+def test_a_malformed_npy_value_is_refused_naming_the_key(stubs, cornell, data):
+    import io
+
+    if data is None:  # a valid .npy of objects: refused, never unpickled
+        buf = io.BytesIO()
+        np.save(buf, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+        data = buf.getvalue()
+    scene, ref = cornell
+    blob = f"blobs/{upload(stubs, data)}"
+    key = "red.reflectance.value"
+    err = rpc_error(stubs.jobs.CreateJob, pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)],
+        parameters=[pb.ParameterSpec(key=key, initial_blob=blob)])))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert f"initial value of '{key}'" in err.details()
+    err = rpc_error(stubs.scenes.RenderScene, pb.RenderSceneRequest(
+        name=scene.name, spp=1, parameters=[pb.ParameterValue(key=key, blob=blob)]))
+    assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert f"value of '{key}'" in err.details()
