@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from . import engine_api as api
+from .devices import format_size
 from .errors import InvalidArgument, ResourceExhausted
 from .image_headers import BadHeader, ImageHeader, read_header
 
@@ -63,13 +64,6 @@ def _over(limit: str, limits: Limits, unit: str = "") -> str:
 
 def _n(value: int) -> str:
     return f"{value:,}"
-
-
-def _size(value: int) -> str:
-    for unit, shift in (("GiB", 30), ("MiB", 20), ("KiB", 10)):
-        if value >= 1 << shift:
-            return f"{value / (1 << shift):.1f} {unit}"
-    return f"{value} bytes"
 
 
 # -- estimates -------------------------------------------------------------------------------
@@ -117,7 +111,7 @@ class Estimate:
         films = ", ".join(f"sensor {s} {r.width}x{r.height}" for s, r in self.films.items())
         return (f"{films}; {_n(self.samples_per_iteration)} samples per iteration, largest "
                 f"render call {_n(max((r.samples for r in self.renders), default=0))} samples, "
-                f"films {_size(self.film_bytes)}")
+                f"films {format_size(self.film_bytes)}")
 
 
 def job_estimate(settings: api.JobSettings, films: dict[int, tuple[int, int]],
@@ -170,7 +164,7 @@ def check(estimate: Estimate, limits: Limits) -> None:
                                     f"{r.spp_field} or the resolution")
     if estimate.film_bytes > limits.max_film_memory:
         raise ResourceExhausted(
-            f"the films of {len(estimate.films)} sensor(s) take {_size(estimate.film_bytes)} "
+            f"the films of {len(estimate.films)} sensor(s) take {format_size(estimate.film_bytes)} "
             f"({_n(estimate.film_bytes)} bytes); {_over('max_film_memory', limits, ' bytes')}")
 
 
@@ -188,7 +182,7 @@ def reference_header(path: Path, name: str, limits: Limits) -> ImageHeader:
                                 f"{_over('max_reference_pixels', limits, ' px')}")
     if header.decoded_bytes > limits.max_reference_memory:
         raise ResourceExhausted(f"{what} of {header.channels} channel(s) that takes "
-                                f"{_size(header.decoded_bytes)} to decode; "
+                                f"{format_size(header.decoded_bytes)} to decode; "
                                 f"{_over('max_reference_memory', limits, ' bytes')}")
     return header
 
