@@ -207,8 +207,13 @@ class MitsubaEngine:
                 done, reason = True, s.stop_reason
                 break
         # The last step's backward pass is still pending: evaluated now, a checkpoint or an
-        # eviction that follows takes no longer than it should.
+        # eviction that follows takes no longer than it should. It is the last iteration's
+        # work, so its time goes on the job's clock: with one iteration per call it is over
+        # half of each iteration.
+        began = time.perf_counter()
         opt.flush(*(opt.opt[k] for k in opt.settings))
+        opt.elapsed += time.perf_counter() - began
+        records[-1].seconds = opt.elapsed
         return api.Progress(records, done, reason, opt.best.iteration, opt.best.loss,
                             opt.elapsed, _counters(opt))
 
