@@ -5,21 +5,23 @@ rate, far more iterations than the case runs, so none ends) share the daemon's w
 The scheduler gives a job its worker for a slice (scheduler.SLICE_SECONDS) while others wait,
 picks the next by fair share per user, and switches by checkpointing and releasing one job
 and loading the next: one job resident per worker, so every slice pays one switch. Rounds
-alternate between a window with all 40 jobs running (the others paused) and one with a
-single such job of another user alone (windows of the same length); each window starts once
-the worker has switched at least once, and counts iterations from ListJobs at both ends and
-the worker processes' CPU time.
+alternate between a window with all 40 jobs running (the alone job paused) and one of the
+same length with a single such job of another user alone (the 40 paused); each window starts
+once the worker has switched at least once and counts iterations from ListJobs at both ends,
+and the worker processes' CPU time.
 
 Reported:
 - throughput: iterations per second of all 40 jobs together / of the job alone, per worker
   (target >= 0.80). What is missing is what switches cost. Also the workers' CPU per
   iteration, together / alone: the same question in work done, which other tenants of a
   shared machine disturb far less than time;
-- the time lost per switch: the window's time not explained by its iterations at the alone
-  pace, divided by the number of switches in it (jobs that ran in the window, less the one
-  running at its start: a window is shorter than a turn through 40 jobs); and the part of it
-  outside the jobs' own optimizing clocks (checkpoint, release, load, the store): the rest is
-  slower iterations right after a load;
+- the switch itself, from every job's WatchJob stream and history: a step call's iterations
+  arrive together, right after the call, so the time from a job's last arrival to the next
+  job's first, less that first call's iterations at the pace the job kept for the rest of
+  its slice (its clock, from its history), is what the switch took: checkpoint and release
+  of one job, load of the next, slower first iterations after a load, and the calls'
+  bookkeeping. Also each slice as run, from its first iteration's start to its last
+  arrival, against the scheduler's slice length;
 - the wait of a new user: while the 40 jobs run, a user with nothing queued creates a job;
   the time from CreateJob sent to its first iteration's WatchJob event, over several new
   users arriving at different points of a slice (target: max <= 5 s; fair share puts a
@@ -30,7 +32,9 @@ On a GPU the same runs on the daemon's CUDA worker(s).
 
 from __future__ import annotations
 
+import threading
 import time
+from dataclasses import dataclass
 
 import common
 from common import Result, Settings, Target
@@ -44,6 +48,7 @@ NEWCOMERS = 8               # users who arrive while the 40 jobs run (fewer in -
 ENDLESS = 100_000           # iterations: no job ends within the case
 TARGET_THROUGHPUT = 0.80    # together / alone
 TARGET_WAIT = 5.0           # seconds, the longest wait of a new user
+BURST = 0.005               # seconds: events of one step call arrive closer than this
 TENANTS = [f"user{i}" for i in range(USERS)]
 ALONE = "solo"
 NEW = [f"newcomer{i}" for i in range(NEWCOMERS)]
@@ -85,24 +90,33 @@ def wait_states(clients: dict[str, mc.Client], names: dict[str, str], states,
         time.sleep(0.1)
 
 
-def first_iteration(client: mc.Client, name: str, since: float) -> tuple[int, float]:
-    """The next iteration the job reports, and when it arrived (perf_counter - ``since``)."""
+def first_iteration(client: mc.Client, name: str, since: float) -> float:
+    """When the job's next iteration arrived (perf_counter - ``since``)."""
     start: int | None = None
     for event in mc.watch(client, name):
         if event.HasField("job") and start is None:
             start = event.job.iteration  # the stream opens with the job as it is
         elif event.HasField("iteration") and event.iteration.iteration >= (start or 0):
-            return event.iteration.iteration, time.perf_counter() - since
+            return time.perf_counter() - since
         if event.HasField("job") and event.job.state in mc.TERMINAL_STATES:
             break
     raise RuntimeError(f"job {name} ended before its next iteration")
 
 
+def follow(client: mc.Client, name: str, out: list) -> None:
+    """Appends (arrival, job, iteration) for each iteration event until the stream ends."""
+    try:
+        for event in mc.watch(client, name):
+            if event.HasField("iteration"):
+                out.append((time.perf_counter(), name, event.iteration.iteration))
+    except Exception:  # noqa: BLE001 - the stream ends when the client closes
+        pass
+
+
 def window(server: common.Daemon, clients: dict[str, mc.Client], names: dict[str, str],
            seconds: float) -> dict:
-    """Iterations, optimizing seconds, the jobs that ran and the workers' CPU seconds over
-    ``seconds`` of the jobs' running, from ListJobs at both ends (each end timed at the
-    middle of its calls)."""
+    """Iterations and the workers' CPU seconds over ``seconds`` of the jobs' running, from
+    ListJobs at both ends (each end timed at the middle of its calls)."""
     def snapshot() -> tuple[float, dict[str, pb.Job], float]:
         t0 = time.perf_counter()
         jobs = jobs_of({u: clients[u] for u in set(names.values())})
@@ -111,25 +125,67 @@ def window(server: common.Daemon, clients: dict[str, mc.Client], names: dict[str
     t0, before, cpu0 = snapshot()
     time.sleep(seconds)
     t1, after, cpu1 = snapshot()
-    ran = [n for n in names if after[n].iteration > before[n].iteration]
-    return {"seconds": t1 - t0, "worker_cpu_seconds": cpu1 - cpu0,
-            "iterations": sum(after[n].iteration - before[n].iteration for n in names),
-            "optimizing": sum(after[n].elapsed_seconds - before[n].elapsed_seconds
-                              for n in names),
-            "jobs_ran": len(ran)}
+    return {"began": t0, "seconds": t1 - t0, "worker_cpu_seconds": cpu1 - cpu0,
+            "iterations": sum(after[n].iteration - before[n].iteration for n in names)}
+
+
+@dataclass
+class Call:
+    """One step call of a job as its events arrived: iterations first..last."""
+
+    job: str
+    first: int
+    last: int
+    arrived: float
+
+
+def step_calls(events: list[tuple[float, str, int]]) -> list[Call]:
+    """The arrivals grouped into step calls: a call's events come together."""
+    calls: list[Call] = []
+    for t, job, it in sorted(events):
+        c = calls[-1] if calls else None
+        if c is not None and c.job == job and it == c.last + 1 and t - c.arrived < BURST:
+            c.last, c.arrived = it, t
+        else:
+            calls.append(Call(job, it, it, t))
+    return calls
+
+
+def switches(calls: list[Call], clock: dict[str, dict[int, float]]) -> tuple[list, list]:
+    """Each switch's time and each whole slice as run. A switch runs from one job's last
+    arrival to the next one's first, less the iterations of that first call at the pace the
+    job then kept (its clock, from its history, over the slice's later iterations): what
+    remains is checkpoint, release and load, and any slowness of the first iterations after
+    a load. A slice runs from its first call's start to its last arrival. ``clock``: job ->
+    iteration -> seconds."""
+    slices: list[list[Call]] = []
+    for c in calls:
+        if slices and slices[-1][-1].job == c.job:
+            slices[-1].append(c)
+        else:
+            slices.append([c])
+    cost, length = [], []
+    for before, after in zip(slices, slices[1:]):
+        first, seconds = after[0], clock.get(after[0].job, {})
+        steps = [seconds[i] - seconds[i - 1] for i in range(first.first + 2, after[-1].last + 1)
+                 if i in seconds and i - 1 in seconds]
+        if not steps:
+            continue  # too short a slice to tell its pace
+        own = (first.last - first.first + 1) * common.median(steps)
+        cost.append(first.arrived - before[-1].arrived - own)
+        length.append(after[-1].arrived - first.arrived + own)
+    return cost, length[:-1]  # the window's end may cut its last slice short
 
 
 def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
     rounds, measured, newcomers = (2, 8.0, 3) if settings.quick else (4, 20.0, NEWCOMERS)
-    workers = len(server.client.info.workers) or 1
     clients: dict[str, mc.Client] = {}
     specs: dict[str, pb.JobSpec] = {}
     for user in [ALONE, *TENANTS, *NEW[:newcomers]]:
         clients[user], specs[user] = prepare(server, user, settings)
     try:
-        return measure(settings, server, clients, specs, rounds, measured, newcomers, workers,
-                       began)
+        return measure(settings, server, clients, specs, rounds, measured, newcomers, began)
     finally:
         for client in clients.values():
             client.close()
@@ -137,13 +193,17 @@ def run(settings: Settings, server: common.Daemon) -> Result:
 
 def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Client],
             specs: dict[str, pb.JobSpec], rounds: int, measured: float, newcomers: int,
-            workers: int, began: float) -> Result:
+            began: float) -> Result:
+    workers = len(server.client.info.workers) or 1
     solo = {create(clients[ALONE], specs[ALONE]): ALONE}
     first_iteration(clients[ALONE], next(iter(solo)), time.perf_counter())  # warm: compiled
     many = {}
     for user in TENANTS:
         for _ in range(JOBS_PER_USER):
             many[create(clients[user], specs[user])] = user
+    events: list[tuple[float, str, int]] = []
+    for name, user in {**solo, **many}.items():  # the alone job too: the same streams' cost
+        threading.Thread(target=follow, args=(clients[user], name, events), daemon=True).start()
     rows: list[dict] = []
     figures: dict[str, list[dict]] = {"alone": [], "together": []}
 
@@ -158,8 +218,7 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
 
     def alone(r: int) -> None:
         resume(solo)
-        name = next(iter(solo))
-        first_iteration(clients[ALONE], name, time.perf_counter())  # loaded and stepping
+        first_iteration(clients[ALONE], next(iter(solo)), time.perf_counter())  # stepping
         w = window(server, clients, solo, measured)
         pause(solo)
         figures["alone"].append(w)
@@ -178,6 +237,14 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
     pause(solo)
     pause(many)  # created running: all wait for the first round
     common.alternate(rounds, alone, together)
+    clock = {name: {r.iteration: r.seconds for r in clients[user].jobs.GetJobHistory(
+        pb.GetJobHistoryRequest(name=name)).iterations} for name, user in many.items()}
+    cost, lengths = [], []
+    for w in figures["together"]:
+        c, s = switches(step_calls([e for e in events
+                                    if w["began"] <= e[0] <= w["began"] + w["seconds"]]), clock)
+        cost += c
+        lengths += s
 
     # New users arriving while the 40 jobs run, at different points of a slice.
     resume(many)
@@ -187,13 +254,14 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
         time.sleep((0.37 * k % 1.0) * SLICE_SECONDS)
         t0 = time.perf_counter()
         name = create(clients[user], specs[user])
-        _, wait = first_iteration(clients[user], name, t0)
-        waits.append(wait)
+        waits.append(first_iteration(clients[user], name, t0))
         rows.append({"round": "newcomer", "jobs": len(many) + 1, "user": user,
-                     "create_to_first_iteration_s": wait})
+                     "create_to_first_iteration_s": waits[-1]})
         clients[user].jobs.CancelJob(pb.CancelJobRequest(name=name))
         wait_states(clients, {name: user}, (pb.CANCELLED,))
     pause(many)
+    rows += [{"round": "switch", "switch_seconds": c} for c in cost]
+    rows += [{"round": "slice", "slice_seconds": s} for s in lengths]
 
     alone_rate = [w["iterations"] / w["seconds"] for w in figures["alone"]]
     together_rate = [w["iterations"] / w["seconds"] for w in figures["together"]]
@@ -205,19 +273,9 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
                   / (a["worker_cpu_seconds"] / a["iterations"])
                   for a, t in zip(figures["alone"], figures["together"])]
     pace = common.median([w["seconds"] / w["iterations"] for w in figures["alone"]])
-    # The alone job's own share of time off its clock (store, events, step calls), which
-    # switching does not cause: taken off before the rest is charged to switches.
-    off_clock_alone = common.median([1 - w["optimizing"] / w["seconds"]
-                                     for w in figures["alone"]])
-    lost, off_clock, slices = [], [], []
-    for w in figures["together"]:
-        switches = max(w["jobs_ran"] - workers, 1)
-        device = w["seconds"] * workers
-        lost.append((device - w["iterations"] * pace) / switches)
-        off_clock.append((device * (1 - off_clock_alone) - w["optimizing"]) / switches)
-        slices.append(device / switches)
     csv = common.write_csv(settings.out / "switching.csv", rows)
     wait_max = max(waits) if waits else float("nan")
+    switch, slice_ = common.median(cost), common.median(lengths)
     return Result("switching", "Many users' jobs time-sliced", [
         Target(f"iterations per second per worker, {len(many)} jobs of {USERS} users "
                "together / one job alone", f"{ratio:.3f} (target >= {TARGET_THROUGHPUT})",
@@ -227,25 +285,22 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
                f"target max <= {TARGET_WAIT:g} s)", wait_max <= TARGET_WAIT),
         Target("workers' CPU per iteration, together / alone (context: work done)",
                f"{common.median(cpu_ratios):.3f}", None),
-        Target("time lost per switch (checkpoint, release, load, slower first iterations)",
-               f"{common.median(lost) * 1000:.0f} ms per slice of "
-               f"{common.median(slices):.2f} s (scheduler slice {SLICE_SECONDS:g} s)", None),
+        Target("switch (checkpoint, release, load) against the slice",
+               f"{switch * 1000:.0f} ms per slice of {slice_:.2f} s as run (scheduler slice "
+               f"{SLICE_SECONDS:g} s): {switch / (switch + slice_):.1%} of the worker's time",
+               None),
     ], [
         f"Jobs: Cornell box walls, {RES}x{RES}, {SPP} spp, constant rate; {USERS} users x "
         f"{JOBS_PER_USER} jobs on {workers} worker(s); {rounds} alternating rounds of "
         f"{measured:g} s windows, together and alone.",
         f"- alone: {common.spread(alone_rate, '{:.1f}')} iterations/s "
-        f"({pace * 1000:.1f} ms per iteration per worker)",
+        f"({pace * 1000:.1f} ms per iteration)",
         f"- together: {common.spread(together_rate, '{:.1f}')} iterations/s; ratio per "
         f"round: {', '.join(f'{x:.3f}' for x in ratios)}; workers' CPU per iteration, ratio "
         f"per round: {', '.join(f'{x:.3f}' for x in cpu_ratios)}",
-        "- switches per window: "
-        + ", ".join(str(max(w["jobs_ran"] - workers, 1)) for w in figures["together"])
-        + f"; one per {common.spread(slices, '{:.2f}')} s of a worker's time (the scheduler's "
-        f"slice is {SLICE_SECONDS:g} s, plus the switch)",
-        f"- lost per switch: {common.spread([x * 1000 for x in lost], '{:.0f}')} ms, of "
-        f"which off the jobs' clocks (checkpoint, release, load, store): "
-        f"{common.spread([x * 1000 for x in off_clock], '{:.0f}')} ms; the rest is "
-        "iterations after a load running slower than the alone pace",
+        f"- switches: {common.spread([c * 1000 for c in cost], '{:.0f}')} ms, p90 "
+        f"{common.percentile(cost, 90) * 1000:.0f} ms; slices as run: "
+        f"{common.spread(lengths, '{:.2f}')} s (the scheduler's slice is {SLICE_SECONDS:g} s; "
+        "a slice ends at the first step call to end past it)",
         f"- new users' waits: {', '.join(f'{w:.2f} s' for w in waits)}",
     ], [csv], time.perf_counter() - began)
