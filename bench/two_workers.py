@@ -51,7 +51,7 @@ def pair(server: common.Daemon, spec, what: str) -> dict:
 
 def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
-    iterations, rounds = (30, 2) if settings.quick else (100, 4)
+    iterations, rounds = (20, 2) if settings.quick else (100, 4)
     if server.cuda:
         sides = {"one": ["--devices", "0"], "two": ["--devices", "0,0"]}
         place = "one CUDA device"
