@@ -79,25 +79,71 @@ class Daemon:
     address: str
     data_dir: Path
     log: Path
+    tokens: dict[str, str] = field(default_factory=dict)  # user -> token, with --tokens
+    _children: list[int] = field(default_factory=list)
 
     @property
     def pid(self) -> int:
+        """The server process: gRPC, store, scheduler; never the renderer."""
         return self.process.pid
 
     @property
     def variant(self) -> str:
         return self.client.info.variant if self.client.info else ""
 
+    @property
+    def cuda(self) -> bool:
+        return self.variant.startswith("cuda")
+
+    def connect(self, user: str | None = None) -> mc.Client:
+        """Another client of this daemon, as ``user`` (a name in ``tokens``) when given."""
+        return mc.connect(self.address, self.tokens[user] if user else None,
+                          probe_timeout=30)
+
+    def worker_pids(self) -> list[int]:
+        """The renderer processes the daemon runs now, from GetServerInfo (0: none running)."""
+        info = self.client.server.GetServerInfo(pb.GetServerInfoRequest(), timeout=30)
+        return [w.pid for w in info.workers if w.pid]
+
+    def cpu(self) -> "Cpu":
+        """CPU seconds so far of the server process and of its worker processes (each
+        worker that runs now: a restarted worker's predecessor no longer counts)."""
+        return Cpu(cpu_seconds(self.pid), sum(cpu_seconds(p) for p in self.workers()))
+
+    def rss(self) -> tuple[int, int]:
+        """Resident bytes of the server process and of all its workers together."""
+        return rss_bytes(self.pid), sum(rss_bytes(p) for p in self.workers())
+
+    def workers(self) -> list[int]:
+        """The pids of the worker processes (the daemon's children), looked up again only
+        when one of those known has ended: reading /proc for every process is not free."""
+        if not self._children or not all(Path(f"/proc/{p}").exists() for p in self._children):
+            self._children = children(self.pid)
+        return self._children
+
+
+def tokens_file(path: Path, users: Sequence[str]) -> dict[str, str]:
+    """A ``--tokens`` file with one token per user (the daemon wants >= 16 characters)."""
+    tokens = {u: f"{u}-{uuid.uuid4().hex}" for u in users}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{t} {u}\n" for u, t in tokens.items()))
+    return tokens
+
 
 @contextmanager
-def daemon(work: Path, name: str = "daemon") -> Iterator[Daemon]:
-    """``python -m matoptd`` on a free loopback port with its own data dir, as users start it;
-    SIGTERM on the way out (SIGKILL if it does not stop in 60 s)."""
+def daemon(work: Path, name: str = "daemon", extra: Sequence[str] = (),
+           users: Sequence[str] = ()) -> Iterator[Daemon]:
+    """``python -m matoptd`` on a free loopback port with its own data dir, as users start it,
+    with ``extra`` flags; with ``users``, a tokens file for them (``client`` is the first
+    user's). SIGTERM on the way out (SIGKILL if it does not stop in 60 s)."""
     directory = work / f"{name}-{uuid.uuid4().hex[:6]}"
     directory.mkdir(parents=True)
     port_file, log = directory / "port", directory / "matoptd.log"
     command = [sys.executable, "-m", "matoptd", "--listen", "127.0.0.1:0",
-               "--data-dir", str(directory / "data"), "--port-file", str(port_file)]
+               "--data-dir", str(directory / "data"), "--port-file", str(port_file), *extra]
+    tokens = tokens_file(directory / "tokens", users) if users else {}
+    if tokens:
+        command += ["--tokens", str(directory / "tokens")]
     with open(log, "wb") as out:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
                                    stderr=subprocess.STDOUT)
@@ -110,9 +156,9 @@ def daemon(work: Path, name: str = "daemon") -> Iterator[Daemon]:
                 raise RuntimeError("matoptd did not start in 180 s")
             time.sleep(0.1)
         address = f"127.0.0.1:{int(port_file.read_text())}"
-        client = mc.connect(address, probe_timeout=30)
+        client = mc.connect(address, tokens[users[0]] if tokens else None, probe_timeout=30)
         try:
-            yield Daemon(process, client, address, directory / "data", log)
+            yield Daemon(process, client, address, directory / "data", log, tokens)
         finally:
             client.close()
     finally:
@@ -125,9 +171,35 @@ def daemon(work: Path, name: str = "daemon") -> Iterator[Daemon]:
                 process.wait()
 
 
+@dataclass(frozen=True)
+class Cpu:
+    """CPU seconds of the daemon's two kinds of process: the server (gRPC, store, scheduler)
+    and the workers (the renderer). A job's own work is the workers'."""
+
+    server: float
+    workers: float
+
+
+def children(pid: int) -> list[int]:
+    """The live child processes of ``pid``: the processes whose parent it is (Linux /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:  # ended meanwhile
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process, all its threads (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    """User + system CPU time of a process, all its threads (Linux /proc); 0 once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
@@ -200,23 +272,32 @@ class JobRun:
     wall: float                     # CreateJob sent -> final state seen
     arrivals: list[float]           # client clock of each iteration event, from CreateJob
     first_iteration: float | None   # CreateJob sent -> iteration 0 seen
-    cpu: list[float] = field(default_factory=list)  # daemon CPU seconds at each arrival
+    cpu: list[Cpu] = field(default_factory=list)  # the daemon's CPU seconds at each arrival
 
     @property
     def seconds(self) -> list[float]:
         return [r.seconds for r in self.history]
 
+    @property
+    def cpu_server(self) -> list[float]:
+        return [c.server for c in self.cpu]
+
+    @property
+    def cpu_workers(self) -> list[float]:
+        return [c.workers for c in self.cpu]
+
 
 def run_job(client: mc.Client, spec: pb.JobSpec,
             on_created: Callable[[str], None] | None = None,
-            pid: int | None = None) -> JobRun:
+            server: Daemon | None = None) -> JobRun:
     """Creates the job and follows it with WatchJob to its end.
 
     The watch starts right after CreateJob returns (and ``on_created(name)``); should
     iteration 0 have finished before the stream opened, the job event that opens the stream
     shows it, so first_iteration is never missed (only then it is a little late). With the
-    daemon's ``pid``, its CPU time is read as each iteration arrives: work done, which other
-    tenants of the machine disturb far less than elapsed time.
+    daemon (``server``), the CPU time of its server and worker processes is read as each
+    iteration arrives: work done, which other tenants of the machine disturb far less than
+    elapsed time.
     """
     began = time.perf_counter()
     name = client.jobs.CreateJob(pb.CreateJobRequest(spec=spec,
@@ -224,15 +305,15 @@ def run_job(client: mc.Client, spec: pb.JobSpec,
     if on_created:
         on_created(name)
     arrivals: list[float] = []
-    cpu: list[float] = []
+    cpu: list[Cpu] = []
     first: float | None = None
     final: pb.Job | None = None
     for event in mc.watch(client, name):
         now = time.perf_counter() - began
         if event.HasField("iteration"):
             arrivals.append(now)
-            if pid is not None:
-                cpu.append(cpu_seconds(pid))
+            if server is not None:
+                cpu.append(server.cpu())
             first = now if first is None else first
         elif event.job.iteration > 0 and first is None:
             first = now

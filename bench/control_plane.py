@@ -4,15 +4,28 @@ While the overhead case's job runs (Cornell box walls, 128x128, 4 spp), a bounde
 clients on loopback, each with its own channel, polls GetJob at 200 requests per second in
 all (evenly paced, never bursting to catch up) and holds WatchJob streams on the job. Rounds
 alternate with the same job alone. Reported: GetJob latency percentiles (also with the daemon
-idle, for reference), the rate reached, and the job's slowdown per iteration against the job
-alone. The load generator runs in this process and shares the machine's cores with the
-daemon, so its own CPU use is reported too.
+idle, for reference), the rate reached, the job's slowdown per iteration against the job
+alone, and the CPU per iteration of the daemon's server process (which serves the load) and
+of its worker (which renders) separately.
+
+Two layouts, each with its own alternating rounds:
+- shared: the daemon as it starts by default. Its server process (gRPC) and the load
+  generator (this process) run on the same cores as the worker's render threads, so on a
+  machine whose cores all render (the LLVM backend uses every core it is given) the CPU the
+  load takes comes out of the job's share: this figure says what status traffic costs a
+  CPU-only machine that renders on every core;
+- pinned: ``matoptd --server-cores 1``: the server process on the first core, the worker on
+  the others, and the load generator pinned to the server's core. The worker renders with one
+  core fewer (so both its alone and loaded times are longer than shared), but nothing else
+  runs on its cores: this figure says whether the control plane disturbs rendering when it
+  has a core of its own, as it has where the renderer is a GPU. Needs at least 2 cores.
 """
 
 from __future__ import annotations
 
 import os
 import threading
+from contextlib import contextmanager
 import time
 from dataclasses import dataclass, field
 
@@ -106,9 +119,71 @@ def percentiles_ms(latencies: list[float]) -> str:
     return ", ".join(f"p{p} {common.percentile(latencies, p) * 1000:.1f} ms" for p in (50, 95, 99))
 
 
-def run(settings: Settings, server: common.Daemon) -> Result:
-    began = time.perf_counter()
-    iterations, rounds = (10, 2) if settings.quick else (50, 4)
+@contextmanager
+def pinned_to(cores: set[int]):
+    """Every thread of this process (gRPC's own included) on ``cores`` for the block; the
+    threads started inside inherit it."""
+    tasks = [int(t) for t in os.listdir("/proc/self/task")]
+    before = {t: os.sched_getaffinity(t) for t in tasks}
+    for t in tasks:
+        os.sched_setaffinity(t, cores)
+    try:
+        yield
+    finally:
+        for t, mask in before.items():
+            try:
+                os.sched_setaffinity(t, mask)
+            except OSError:  # that thread ended
+                pass
+        for t in os.listdir("/proc/self/task"):  # threads started inside: back to all
+            if int(t) not in before:
+                try:
+                    os.sched_setaffinity(int(t), before[os.getpid()])
+                except OSError:
+                    pass
+
+
+@dataclass
+class Layout:
+    """One layout's rounds: per-iteration times and CPU, loads, the idle reference."""
+
+    name: str
+    alone: list[float] = field(default_factory=list)   # the job's clock, per iteration
+    loaded: list[float] = field(default_factory=list)
+    wall: dict[str, list[float]] = field(default_factory=lambda: {"alone": [], "loaded": []})
+    cpu: dict[str, list[common.Cpu]] = field(default_factory=lambda: {"alone": [],
+                                                                       "loaded": []})
+    loads: list[Load] = field(default_factory=list)
+    idle: Load | None = None
+    per_request: float = 0.0  # server CPU seconds per GetJob, idle
+    rows: list[dict] = field(default_factory=list)
+
+    @property
+    def slowdowns(self) -> list[float]:
+        return [b / a - 1 for a, b in zip(self.alone, self.loaded)]
+
+    @property
+    def latencies(self) -> list[float]:
+        return [x for load in self.loads for x in load.latencies]
+
+    @property
+    def server_share(self) -> float:
+        """The server process's CPU under load, in cores."""
+        return common.median([c.server / w for c, w in zip(self.cpu["loaded"],
+                                                            self.wall["loaded"])])
+
+    def cpu_ratio(self, process: str) -> float:
+        return common.median([getattr(b, process) / getattr(a, process)
+                              for a, b in zip(self.cpu["alone"], self.cpu["loaded"])])
+
+
+def per_iteration_cpu(run_: common.JobRun) -> common.Cpu:
+    return common.Cpu(common.per_iteration(run_.cpu_server),
+                      common.per_iteration(run_.cpu_workers))
+
+
+def measure(layout: Layout, server: common.Daemon, settings: Settings, iterations: int,
+            rounds: int) -> Layout:
     client = server.client
     scene = common.cornell(client, RES)
     ref_blob, _ = common.reference(client, scene, 64, settings.work)
@@ -116,85 +191,132 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     warm = common.run_job(client, spec)  # warm-up: kernels compiled; its name serves idle polls
     common.require_success(warm, "control_plane warm-up")
 
-    idle_cpu = common.cpu_seconds(server.pid)
-    idle = Load(server.address, warm.job.name).start(watchers=0)
+    idle_cpu = server.cpu().server
+    layout.idle = Load(server.address, warm.job.name).start(watchers=0)
     time.sleep(1.0 if settings.quick else 4.0)
-    idle.finish()
-    per_request = (common.cpu_seconds(server.pid) - idle_cpu) / max(len(idle.latencies), 1)
-
-    rows: list[dict] = []
-    alone: list[float] = []
-    loaded: list[float] = []
-    latencies: list[float] = []
-    loads: list[Load] = []
-
-    cpu: dict[str, list[float]] = {"alone": [], "loaded": []}
+    layout.idle.finish()
+    layout.per_request = ((server.cpu().server - idle_cpu)
+                          / max(len(layout.idle.latencies), 1))
 
     def without(r: int) -> None:
-        run_ = common.run_job(client, spec, pid=server.pid)
+        run_ = common.run_job(client, spec, server=server)
         common.require_success(run_, "control_plane")
-        alone.append(common.per_iteration(run_.seconds))
-        cpu["alone"].append(common.per_iteration(run_.cpu))
-        rows.append({"round": r, "load": "none", "seconds_per_iteration": alone[-1],
-                     "wall_seconds_per_iteration": common.per_iteration(run_.arrivals),
-                     "daemon_cpu_seconds_per_iteration": cpu["alone"][-1]})
+        layout.alone.append(common.per_iteration(run_.seconds))
+        layout.wall["alone"].append(common.per_iteration(run_.arrivals))
+        layout.cpu["alone"].append(per_iteration_cpu(run_))
+        layout.rows.append({"layout": layout.name, "round": r, "load": "none",
+                            "seconds_per_iteration": layout.alone[-1],
+                            "wall_seconds_per_iteration": layout.wall["alone"][-1],
+                            "server_cpu_seconds_per_iteration": layout.cpu["alone"][-1].server,
+                            "worker_cpu_seconds_per_iteration": layout.cpu["alone"][-1].workers})
 
     def under_load(r: int) -> None:
         load: list[Load] = []
         run_ = common.run_job(client, spec, on_created=lambda name: load.append(
-            Load(server.address, name).start()), pid=server.pid)
+            Load(server.address, name).start()), server=server)
         load[0].finish()
         common.require_success(run_, "control_plane")
-        loaded.append(common.per_iteration(run_.seconds))
-        cpu["loaded"].append(common.per_iteration(run_.cpu))
-        latencies.extend(load[0].latencies)
-        loads.append(load[0])
-        rows.append({"round": r, "load": f"{RATE:g} GetJob/s + {WATCHERS} watchers",
-                     "seconds_per_iteration": loaded[-1],
-                     "wall_seconds_per_iteration": common.per_iteration(run_.arrivals),
-                     "daemon_cpu_seconds_per_iteration": cpu["loaded"][-1],
-                     "getjob_rate": load[0].rate, "getjob_errors": load[0].errors,
-                     "watch_events": load[0].events,
-                     "p50_ms": common.percentile(load[0].latencies, 50) * 1000,
-                     "p95_ms": common.percentile(load[0].latencies, 95) * 1000,
-                     "p99_ms": common.percentile(load[0].latencies, 99) * 1000,
-                     "client_cpu_share": load[0].cpu / (load[0].ended - load[0].began)})
+        layout.loaded.append(common.per_iteration(run_.seconds))
+        layout.wall["loaded"].append(common.per_iteration(run_.arrivals))
+        layout.cpu["loaded"].append(per_iteration_cpu(run_))
+        layout.loads.append(load[0])
+        layout.rows.append({
+            "layout": layout.name, "round": r, "load": f"{RATE:g} GetJob/s + {WATCHERS} watchers",
+            "seconds_per_iteration": layout.loaded[-1],
+            "wall_seconds_per_iteration": layout.wall["loaded"][-1],
+            "server_cpu_seconds_per_iteration": layout.cpu["loaded"][-1].server,
+            "worker_cpu_seconds_per_iteration": layout.cpu["loaded"][-1].workers,
+            "getjob_rate": load[0].rate, "getjob_errors": load[0].errors,
+            "watch_events": load[0].events,
+            "p50_ms": common.percentile(load[0].latencies, 50) * 1000,
+            "p95_ms": common.percentile(load[0].latencies, 95) * 1000,
+            "p99_ms": common.percentile(load[0].latencies, 99) * 1000,
+            "client_cpu_share": load[0].cpu / (load[0].ended - load[0].began)})
 
     common.alternate(rounds, without, under_load)
-    slowdowns = [b / a - 1 for a, b in zip(alone, loaded)]
-    slowdown = common.median(slowdowns)
-    csv = common.write_csv(settings.out / "control_plane.csv", rows)
+    return layout
+
+
+def lines(layout: Layout, what: str) -> list[str]:
+    loads = layout.loads
     rate = sum(len(x.latencies) for x in loads) / sum(x.ended - x.began for x in loads)
     client_cpu = sum(x.cpu for x in loads) / sum(x.ended - x.began for x in loads)
-    return Result("control_plane", "Control plane under load", [
-        Target(f"job slowdown per iteration at {RATE:g} GetJob/s + {WATCHERS} WatchJob streams",
-               f"{slowdown:+.1%} (target < {TARGET:.0%})", slowdown < TARGET),
-        Target("GetJob latency during the job", percentiles_ms(latencies), None),
-        Target("daemon CPU per iteration, loaded / alone (context: the extra work of serving "
-               "the load, which other tenants disturb far less than time)",
-               f"{common.median([b / a for a, b in zip(cpu['alone'], cpu['loaded'])]):.3f}",
-               None),
-    ], [
-        f"Job: Cornell box walls, {RES}x{RES}, {SPP} spp, {iterations} iterations; {rounds} "
-        f"alternating rounds; {POLLERS} polling clients and {WATCHERS} watching clients, each "
-        "on its own loopback channel.",
+    ms = lambda xs, fmt="{:.0f}": common.spread([x * 1000 for x in xs], fmt)  # noqa: E731
+    return [
+        f"**{layout.name}** ({what}):",
         f"- rate reached {rate:.0f} GetJob/s, {sum(x.errors for x in loads)} errors, "
         f"{sum(x.events for x in loads)} WatchJob events delivered",
-        f"- GetJob latency during the job: {percentiles_ms(latencies)}; daemon idle: "
-        f"{percentiles_ms(idle.latencies)} ({idle.rate:.0f}/s)",
-        f"- slowdown per round: {', '.join(f'{s:+.1%}' for s in slowdowns)}; per iteration "
-        f"alone {common.spread([a * 1000 for a in alone], '{:.0f}')} ms, loaded "
-        f"{common.spread([b * 1000 for b in loaded], '{:.0f}')} ms",
-        f"- daemon CPU per iteration: alone "
-        f"{common.spread([a * 1000 for a in cpu['alone']], '{:.0f}')} ms, loaded "
-        f"{common.spread([b * 1000 for b in cpu['loaded']], '{:.0f}')} ms",
-        f"- the load generator itself used {client_cpu:.0%} of one core on the same "
-        f"{os.cpu_count()}-core machine",
-        f"- what the load costs in CPU: the idle daemon spends {per_request * 1000:.2f} ms of "
-        f"CPU per GetJob (gRPC's Python server, mostly), so {RATE:g}/s take "
-        f"{RATE * per_request:.0%} of one core before any watch stream; where the job's "
-        f"kernels already keep every core busy (the LLVM backend uses all {os.cpu_count()}), "
-        "the daemon's extra CPU and the load generator's come out of the job's share. On a "
-        "GPU the job's work is on the device and this case measures the daemon's locking "
-        "and scheduling instead.",
-    ], [csv], time.perf_counter() - began)
+        f"- GetJob latency during the job: {percentiles_ms(layout.latencies)}; daemon idle: "
+        f"{percentiles_ms(layout.idle.latencies)} ({layout.idle.rate:.0f}/s)",
+        f"- slowdown per round: {', '.join(f'{s:+.1%}' for s in layout.slowdowns)}; per "
+        f"iteration alone {ms(layout.alone)} ms, loaded {ms(layout.loaded)} ms (the job's "
+        "clock); as the client sees iterations arrive: slowdown "
+        + ", ".join(f"{b / a - 1:+.1%}" for a, b in zip(layout.wall["alone"],
+                                                        layout.wall["loaded"])),
+        f"- worker CPU per iteration: alone {ms([c.workers for c in layout.cpu['alone']])} ms, "
+        f"loaded {ms([c.workers for c in layout.cpu['loaded']])} ms; server CPU per "
+        f"iteration: alone {ms([c.server for c in layout.cpu['alone']], '{:.1f}')} ms, loaded "
+        f"{ms([c.server for c in layout.cpu['loaded']], '{:.1f}')} ms",
+        "- the worker's CPU per second of the job (cores it kept busy): alone "
+        + ", ".join(f"{c.workers / w:.2f}" for c, w in zip(layout.cpu["alone"],
+                                                            layout.wall["alone"]))
+        + ", loaded " + ", ".join(f"{c.workers / w:.2f}" for c, w in zip(
+            layout.cpu["loaded"], layout.wall["loaded"]))
+        + ": where it does the same work per iteration but keeps fewer cores busy, it waited "
+        "for its cores",
+        f"- the load generator itself used {client_cpu:.0%} of one core; the idle server "
+        f"spends {layout.per_request * 1000:.2f} ms of CPU per GetJob (gRPC's Python server, "
+        f"mostly), so {RATE:g}/s take {RATE * layout.per_request:.0%} of one core before any "
+        "watch stream",
+        "",
+    ]
+
+
+def run(settings: Settings, server: common.Daemon) -> Result:
+    began = time.perf_counter()
+    iterations, rounds = (10, 2) if settings.quick else (50, 4)
+    shared = measure(Layout("shared"), server, settings, iterations, rounds)
+    layouts = [shared]
+    cores = sorted(os.sched_getaffinity(0))
+    if len(cores) >= 2:
+        with common.daemon(settings.work, "control_plane-pinned", ["--server-cores", "1"]) \
+                as pinned_server, pinned_to(os.sched_getaffinity(pinned_server.pid)):
+            pinned = measure(Layout("pinned"), pinned_server, settings, iterations, rounds)
+            pinned.name = (f"pinned: server and load on core(s) "
+                           f"{sorted(os.sched_getaffinity(pinned_server.pid))}, worker on "
+                           f"{pinned_server.client.info.workers[0].device}")
+        layouts.append(pinned)
+    targets = []
+    for layout in layouts:
+        slowdown = common.median(layout.slowdowns)
+        short = layout.name.split(":")[0]
+        targets += [
+            Target(f"{short}: job slowdown per iteration at {RATE:g} GetJob/s + {WATCHERS} "
+                   "WatchJob streams", f"{slowdown:+.1%} (target < {TARGET:.0%})",
+                   slowdown < TARGET),
+            Target(f"{short}: GetJob latency during the job", percentiles_ms(layout.latencies),
+                   None),
+            Target(f"{short}: worker CPU per iteration, loaded / alone; the server's CPU "
+                   "under load (context: work done, which other tenants disturb far less "
+                   "than time)", f"{layout.cpu_ratio('workers'):.3f}x; server "
+                   f"{layout.server_share:.0%} of a core", None)]
+    csv = common.write_csv(settings.out / "control_plane.csv",
+                           [row for layout in layouts for row in layout.rows])
+    text = [f"Job: Cornell box walls, {RES}x{RES}, {SPP} spp, {iterations} iterations; {rounds} "
+            f"alternating rounds per layout; {POLLERS} polling clients and {WATCHERS} watching "
+            "clients, each on its own loopback channel.", ""]
+    text += lines(shared, "the default: server, worker and load generator on every core")
+    if len(layouts) > 1:
+        text += lines(layouts[1], "the control plane on a core of its own")
+    else:
+        text += ["The pinned layout needs at least 2 cores; this machine has 1."]
+    text += ["Which figure answers what: *shared* is the cost of status traffic on a CPU-only "
+             "machine whose every core renders (the load's CPU is taken from the job); "
+             "*pinned* is whether the control plane disturbs rendering once it has a core of "
+             "its own, as on a GPU machine or with `matoptd --server-cores`. On a GPU the "
+             "job's work is on the device and both measure the server's own scheduling. On a "
+             "machine shared with other people's processes, which no pinning here holds, "
+             "those move to the worker's core while the server's is busy: the pinned "
+             "figure then includes them, and the worker's busy cores above show it."]
+    return Result("control_plane", "Control plane under load", targets, text, [csv],
+                  time.perf_counter() - began)

@@ -58,7 +58,7 @@ def mitsuba(variant: str):
     """
     import os
     if "DRJIT_LIBLLVM_PATH" not in os.environ and variant.startswith("llvm"):
-        from matoptd.engine.variant import find_libllvm
+        from matoptd.devices import find_libllvm
         found = find_libllvm()
         if found:
             os.environ["DRJIT_LIBLLVM_PATH"] = found
@@ -129,13 +129,14 @@ def first_iteration(variant: str, xml: Path, reference: Path, overrides: dict[st
     image = mi.render(scene, params, spp=spp, seed=0, integrator=integ)
     loss = dr.mean(dr.square(image[..., :3] - ref[..., :3]), axis=None)
     float(loss.array[0])
+    t["loss_known"] = time.time()
     dr.backward(loss)  # a whole first iteration, as the daemon's iteration 0 of a longer job
     opt.step()
     for key in keys:
         opt[key] = dr.clip(opt[key], 0.0, 1.0)
     params.update(opt)
     # Launched, not waited for: the LLVM backend runs kernels asynchronously, and the daemon
-    # too reports an iteration once its loss is known and its step is launched.
+    # too reports an iteration once its loss is known and its step is traced.
     dr.eval(*(opt[key] for key in keys))
     t["first_iteration"] = time.time()
     return t

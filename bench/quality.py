@@ -127,8 +127,8 @@ def plain_series(its: list[plain.PlainIteration], truth: dict[str, list[float]],
 def run_case(case: Case, settings: Settings, server: common.Daemon) -> dict:
     """Both methods on one case; returns the figures and writes the case's report files.
 
-    The scene is deleted afterwards, which also drops it from the daemon's scene cache, so
-    the next case's jobs do not pay for it (see live_scenes.py).
+    The scene is deleted afterwards: the daemon's store holds only the case at hand (its
+    worker loads each job's scene afresh and keeps none after the job).
     """
     scene = common.xml_scene(server.client, settings.work, case.xml, case.name)
     try:

@@ -2,14 +2,16 @@
 
 Runs each case against a daemon of its own, started here (``python -m matoptd`` on a loopback
 port, its variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; the plain-
-Mitsuba baselines use the same variant), so that no case inherits another's loaded scenes
-(which slow a daemon's jobs down: see live_scenes.py). Each case measures its own baseline in the same run,
+Mitsuba baselines use the same variant), so that no case inherits another's jobs, history or
+worker state; a case module's ``DAEMON`` (keyword arguments of ``common.daemon``: users for a
+tokens file, extra flags) says how its daemon starts, and a case that compares daemon
+configurations starts those itself. Each case measures its own baseline in the same run,
 alternating with it, and reports ratios. Writes CSVs, PNG plots and summary.md to --out; a
 full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
 
 A case that fails is reported as failed in the summary (with the error); the others still run.
---quick is a smoke run of reduced cases (about 2 minutes on 2 CPU cores); the full run takes
-under 15 minutes there.
+--quick is a smoke run of reduced cases (a few minutes on 2 CPU cores); the full run takes
+about 15-20 minutes there.
 """
 
 from __future__ import annotations
@@ -34,16 +36,33 @@ import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
-         "live_scenes", "geometry"]
+         "switching", "worker_restart", "two_workers", "geometry"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
+# Cases no longer run, and why: the summary says so, so that a reader of an older report
+# knows where its figures went.
+RETIRED = {
+    "live_scenes": "measured a job's iterations while the daemon kept 4 other scenes loaded "
+                   "in the same process (0.99x: no measurable cost at 48x48). Since the "
+                   "renderer runs in worker processes, a worker holds at most one job and "
+                   "drops its preview scene when a job starts, so no other scene is ever "
+                   "loaded beside a running job; what one job resident per worker costs is "
+                   "the switch between jobs, which `switching` measures.",
+}
 
 
-def run_case(name: str, settings: Settings, daemon: common.Daemon) -> Result:
-    """One case; an exception becomes a failed result rather than ending the run."""
+def run_case(name: str, settings: Settings) -> tuple[Result, object]:
+    """One case on a daemon of its own; an exception becomes a failed result rather than
+    ending the run. Also returns the daemon's ServerInfo (None if it did not start)."""
     began = time.perf_counter()
     print(f"bench: {name} ...", file=sys.stderr, flush=True)
+    info = None
     try:
-        result = importlib.import_module(name).run(settings, daemon)
+        module = importlib.import_module(name)
+        with common.daemon(settings.work, name, **getattr(module, "DAEMON", {})) as daemon:
+            info = daemon.client.info
+            print(f"bench: daemon {info.variant} on {info.device}, {len(info.workers)} "
+                  "worker(s)", file=sys.stderr, flush=True)
+            result = module.run(settings, daemon)
     except Exception as exc:  # noqa: BLE001 - reported in the summary
         traceback.print_exc()
         result = Result(name, name, [Target("case ran", f"FAILED: {type(exc).__name__}: {exc}",
@@ -52,7 +71,7 @@ def run_case(name: str, settings: Settings, daemon: common.Daemon) -> Result:
     print(f"bench: {name} done in {result.seconds:.0f} s", file=sys.stderr, flush=True)
     for t in result.targets:
         print(f"  {_mark(t.met)} {t.what}: {t.figure}", file=sys.stderr, flush=True)
-    return result
+    return result, info
 
 
 def clear(out: Path) -> None:
@@ -80,8 +99,9 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "",
         f"Latest {'quick (smoke) ' if settings.quick else ''}run of `python bench/run.py"
         f"{' --quick' if settings.quick else ''}`: {when}, {seconds / 60:.1f} min.",
-        f"Daemon: {info.variant} on {info.device}; matopt {info.version}, commit "
-        f"{common.git_revision()}; Python {platform.python_version()}, "
+        (f"Daemon: {info.variant} on {info.device} ({len(info.workers)} worker process(es) "
+         f"by default); matopt {info.version}, commit " if info else "Daemon: did not start; "
+         "commit ") + f"{common.git_revision()}; Python {platform.python_version()}, "
         f"{os.cpu_count()} CPU threads.",
         "",
         "Every figure is a ratio against a baseline measured in the same run, alternating "
@@ -91,11 +111,12 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "machine shows up as noise in every time below.",
         "",
         "Run it: `python bench/run.py` (the full run; it also rewrites docs/benchmarks.md) or "
-        "`python bench/run.py --quick` (a smoke run of reduced cases, about 2 minutes); "
-        "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases. It starts its own "
-        "daemon on a loopback port, uses the GPU when that daemon reports a CUDA variant, and "
-        "needs matplotlib (`pip install 'matopt[plot]'`). The cases are the modules in "
-        "`bench/`; each module's docstring says exactly what it measures and why.",
+        "`python bench/run.py --quick` (a smoke run of reduced cases, a few minutes); "
+        "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases. It starts a daemon "
+        "per case on a loopback port (the renderer in its worker processes, the API in the "
+        "daemon's own: CPU figures name which), uses the GPU when that daemon reports a CUDA "
+        "variant, and needs matplotlib (`pip install 'matopt[plot]'`). The cases are the "
+        "modules in `bench/`; each module's docstring says exactly what it measures and why.",
         "",
         "## Targets",
         "",
@@ -115,6 +136,8 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
                                              for f in tables)]
         for f in pictures:
             out += ["", f"![{_rel(f, settings)}]({links}{_rel(f, settings)})"]
+    out += ["", "## Retired cases", ""]
+    out += [f"- `{name}`: {why}" for name, why in RETIRED.items()]
     return "\n".join(out) + "\n"
 
 
@@ -134,11 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     results, info = [], None
     try:
         for name in args.only or CASES:
-            with common.daemon(work, name) as daemon:
-                if info is None:
-                    info = daemon.client.info
-                    print(f"bench: daemon {info.variant} on {info.device}", file=sys.stderr)
-                results.append(run_case(name, settings, daemon))
+            result, started = run_case(name, settings)
+            results.append(result)
+            info = info or started
     finally:
         shutil.rmtree(work, ignore_errors=True)
     seconds = time.perf_counter() - began

@@ -57,13 +57,26 @@ def split_cores(cores: list[int], workers: int) -> list[tuple[int, ...]]:
     return [(cores[i % len(cores)],) for i in range(workers)]
 
 
-def placements(devices: list[str] | None, workers: int | None, variant: str | None
-               ) -> list[Placement]:
-    """One worker per CUDA device (``devices``, else every one nvidia-smi lists or
-    CUDA_VISIBLE_DEVICES names), unless CPU
-    workers are asked for (``workers``, or an LLVM ``variant``) or there is no GPU: then
-    ``workers`` (default 1) CPU workers with the cores split between them."""
+def reserve_cores(n: int) -> list[int]:
+    """Pins every thread of this process to the first ``n`` cores it may run on and returns
+    the others, for the workers: the server's gRPC threads and a machine's other services
+    then never take a render thread's core, nor a worker theirs."""
     cores = cpu_cores()
+    if not 0 < n < len(cores):
+        raise ValueError(f"{n} core(s) for the server leave none of the {len(cores)} this "
+                         f"process may use ({core_ranges(cores)}) to the workers")
+    for task in os.listdir("/proc/self/task"):  # threads started before this one, too
+        os.sched_setaffinity(int(task), cores[:n])
+    return cores[n:]
+
+
+def placements(devices: list[str] | None, workers: int | None, variant: str | None,
+               cores: list[int] | None = None) -> list[Placement]:
+    """One worker per CUDA device (``devices``, else every one nvidia-smi lists or
+    CUDA_VISIBLE_DEVICES names), unless CPU workers are asked for (``workers``, or an LLVM
+    ``variant``) or there is no GPU: then ``workers`` (default 1) CPU workers with the
+    ``cores`` (default: all this process may use) split between them."""
+    cores = cores or cpu_cores()
     cpu_asked = workers is not None or (variant or "").startswith(("llvm", "scalar"))
     if devices is None and not cpu_asked:
         # An administrator's CUDA_VISIBLE_DEVICES names the devices the daemon may use.

@@ -1,16 +1,16 @@
 """``matoptd``: start the daemon.
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
-            [--devices 0,1 | --workers N] [--worker-memory SIZE] [--watchdog SECONDS]
-            [--quota SIZE] [--tls-cert FILE --tls-key FILE] [--port-file FILE]
-            [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
+            [--devices 0,1 | --workers N] [--server-cores N] [--worker-memory SIZE]
+            [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
+            [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
             [--max-reference-pixels N] [--max-reference-memory SIZE]
             [--max-jobs-per-user N] [--max-tasks-per-user N]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_WORKER_MEMORY,
-MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and MATOPTD_MAX_SAMPLES etc.
-for the limits).
+MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_SERVER_CORES,
+MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
+MATOPTD_MAX_SAMPLES etc. for the limits).
 
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
@@ -78,6 +78,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "works); a device named twice gets two workers")
     p.add_argument("--workers", type=int, default=env("MATOPTD_WORKERS"),
                    help="run N CPU workers instead, the cores split between them")
+    p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
+                   help="keep the first N cores this process may use for the server (API, "
+                        "store, scheduler) and give the workers only the others, so that "
+                        "status traffic never competes with rendering (default: all shared)")
     p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
                    help="resident memory a worker may use before it is stopped and its job "
                         "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
@@ -221,12 +225,13 @@ def start_workers(args: argparse.Namespace, store: Store) -> Runner:
     chosen = [d.strip() for d in args.devices.split(",")] if args.devices else None
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
-    places = devices.placements(chosen, args.workers, args.variant)
+    places = devices.placements(chosen, args.workers, args.variant, args.worker_cores)
     runner, failures = _run(args, store, places)
     if not runner.ready and places[0].cuda is not None and chosen is None \
             and args.variant is None:
         log.warning("no CUDA device works (%s); using the CPU", "; ".join(failures))
-        runner, failures = _run(args, store, devices.placements(None, 1, "llvm_ad_rgb"))
+        runner, failures = _run(args, store, devices.placements(None, 1, "llvm_ad_rgb",
+                                                                args.worker_cores))
     if not runner.ready:
         raise SystemExit("matoptd: no renderer worker started: " + "; ".join(failures))
     for failure in failures:
@@ -253,6 +258,16 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    args.worker_cores = None
+    if args.server_cores is not None:
+        # Before any thread starts: the threads gRPC and the lanes start inherit it.
+        try:
+            args.worker_cores = devices.reserve_cores(int(args.server_cores))
+        except ValueError as exc:
+            raise SystemExit(f"matoptd: --server-cores: {exc}")
+        log.info("server on cores %s, workers on %s",
+                 devices.core_ranges(devices.cpu_cores()),
+                 devices.core_ranges(args.worker_cores))
     asyncio.run(serve(args))
 
 

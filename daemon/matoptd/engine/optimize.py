@@ -338,8 +338,11 @@ class Optimization:
         """Everything needed to continue exactly, on any worker: values, Adam's moments and
         step counts, the best and the last iteration, the recent losses that dual-buffer's
         window averages, counters and the clock. The next iteration then renders the same
-        parameters with the same seed as it would have without the interruption."""
+        parameters with the same seed as it would have without the interruption. The last
+        step is evaluated here if no iteration has yet: its time goes on the job's clock."""
+        began = time.perf_counter()
         self.flush()
+        self.elapsed += time.perf_counter() - began
         arrays: dict[str, np.ndarray] = {
             "meta": np.array([self.iteration, self.elapsed, self.best.iteration, self.best.loss,
                               self.nonfinite_steps, self.skipped_steps, self.clamped,
