@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -38,3 +39,45 @@ def test_server_cores_that_leave_the_workers_none_are_refused(tmp_path: Path):
     with pytest.raises(RuntimeError, match=rf"--server-cores: {len(CORES)} core\(s\) for the "
                                            rf"server leave none of the {len(CORES)}"):
         daemon.start()
+
+
+def _node(node_id: str, alive: bool = True, **resources: float) -> dict:
+    return {"NodeID": node_id, "Alive": alive, "NodeManagerAddress": "10.0.0.1",
+            "Resources": {"memory": 10e9, **resources}}
+
+
+def test_a_ray_cluster_gets_one_worker_per_gpu_and_none_on_a_node_without():
+    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    nodes = [_node("aaaa1111", CPU=8, GPU=2), _node("bbbb2222", CPU=4),
+             _node("cccc3333", alive=False, CPU=8, GPU=1)]
+    slots = ray_workers.slots(nodes, cpu_workers=None)
+    assert [(s.name, s.gpu, s.threads) for s in slots] == [
+        ("workers/aaaa1111-0", True, 4), ("workers/aaaa1111-1", True, 4)]
+    assert slots[0].memory == int(0.8 * 10e9 / 2)  # the node's memory, shared by its workers
+
+
+def test_a_ray_cluster_without_gpus_gets_cpu_workers_per_node():
+    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    nodes = [_node("aaaa1111", CPU=8), _node("bbbb2222", CPU=3)]
+    slots = ray_workers.slots(nodes, cpu_workers=2, memory_limit=1 << 30)
+    assert [(s.name, s.gpu, s.threads, s.memory) for s in slots] == [
+        ("workers/aaaa1111-0", False, 4, 1 << 30), ("workers/aaaa1111-1", False, 4, 1 << 30),
+        ("workers/bbbb2222-0", False, 1, 1 << 30), ("workers/bbbb2222-1", False, 1, 1 << 30)]
+
+
+def test_the_cluster_watch_adds_the_workers_of_a_node_that_joins_and_retires_a_leavers():
+    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    known: dict = {}
+    retired: list[tuple[str, str]] = []
+
+    def make(slot):
+        return SimpleNamespace(name=slot.name, node=slot.node, gone=False, info={})
+
+    watch = ray_workers.ClusterWatch(make, lambda w: known.__setitem__(w.name, w),
+                                     lambda name, why: retired.append((name, why)),
+                                     lambda: dict(known), cpu_workers=None, memory_limit=None)
+    watch.reconcile([_node("aaaa1111", CPU=2, GPU=1)])
+    assert list(known) == ["workers/aaaa1111-0"]
+    watch.reconcile([_node("aaaa1111", alive=False, CPU=2, GPU=1), _node("bbbb2222", GPU=1)])
+    assert list(known) == ["workers/aaaa1111-0", "workers/bbbb2222-0"]
+    assert retired == [("workers/aaaa1111-0", "its node (aaaa1111) left the cluster")]

@@ -72,8 +72,11 @@ def jobs_text(worker: pb.Worker) -> str:
 
 
 def process_text(worker: pb.Worker) -> str:
-    """``pid 1234 @ gpu-box``, or ``no process`` between a crash and its restart."""
+    """``pid 1234 @ gpu-box``, ``pid 1234 @ gpu-box, node 3fa2b9c1`` for a worker on a Ray
+    cluster, or ``no process`` between a crash and its restart."""
     where = f" @ {worker.host}" if worker.host else ""
+    if worker.node:
+        where += f"{',' if where else ''} node {worker.node[:8]}"
     return f"pid {worker.pid}{where}" if worker.pid > 0 else f"no process{where}"
 
 

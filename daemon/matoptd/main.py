@@ -1,19 +1,23 @@
 """``matoptd``: start the daemon.
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
-            [--devices 0,1 | --workers N] [--server-cores N] [--worker-memory SIZE]
+            [--devices 0,1 | --workers N] [--ray ADDRESS] [--server-cores N]
+            [--worker-memory SIZE]
             [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
             [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
             [--max-reference-pixels N] [--max-reference-memory SIZE]
             [--max-jobs-per-user N] [--max-tasks-per-user N]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_SERVER_CORES,
+MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_RAY,
+MATOPTD_SERVER_CORES,
 MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
 MATOPTD_MAX_SAMPLES etc. for the limits).
 
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
+With ``--ray`` the workers are Ray actors on the machines of a Ray cluster instead
+(``ray_workers.py``).
 """
 
 from __future__ import annotations
@@ -78,6 +82,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "works); a device named twice gets two workers")
     p.add_argument("--workers", type=int, default=env("MATOPTD_WORKERS"),
                    help="run N CPU workers instead, the cores split between them")
+    p.add_argument("--ray", metavar="ADDRESS", default=env("MATOPTD_RAY"),
+                   help="host the workers as Ray actors on a cluster: 'auto' (the cluster this "
+                        "machine runs in), 'ray://HEAD:10001', 'HOST:PORT', or 'local' for a "
+                        "private Ray instance on this machine; one worker per GPU of the cluster, or "
+                        "with --workers N (or no GPU in the cluster at start) N CPU workers per "
+                        "machine (needs matopt[daemon,ray])")
     p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
@@ -152,7 +162,11 @@ async def serve(args: argparse.Namespace) -> None:
         raise SystemExit(f"matoptd: {exc}")
     args.data_dir.mkdir(parents=True, exist_ok=True)
     store = Store(args.data_dir, quota)
-    runner = await asyncio.to_thread(start_workers, args, store)
+    cluster = None
+    if args.ray:
+        runner, cluster = await asyncio.to_thread(start_ray_workers, args, store)
+    else:
+        runner = await asyncio.to_thread(start_workers, args, store)
 
     server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                                       ("grpc.max_send_message_length", MAX_MESSAGE)])
@@ -195,6 +209,8 @@ async def serve(args: argparse.Namespace) -> None:
     # Side by side: open calls (a watch stream never ends by itself) get their grace while
     # the workers finish their iterations, so a shutdown takes the longer of the two, not both.
     await asyncio.gather(server.stop(grace=5), asyncio.to_thread(runner.stop))
+    if cluster is not None:
+        cluster.stop()
     store.close()
     log.info("stopped")
 
@@ -239,13 +255,51 @@ def start_workers(args: argparse.Namespace, store: Store) -> Runner:
     return runner
 
 
-def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
-         ) -> tuple[Runner, list[str]]:
+def start_ray_workers(args: argparse.Namespace, store: Store):
+    """The workers of a Ray cluster, as it is now; ``ClusterWatch`` adds and retires them as
+    its machines come and go. Unlike local workers, none at all is not fatal: jobs wait."""
+    if args.devices:
+        raise SystemExit("matoptd: --devices chooses local CUDA devices; with --ray every GPU "
+                         "of the cluster is used")
+    if args.workers is not None and args.workers < 1:
+        raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
     try:
-        limit = (devices.parse_size(args.worker_memory) if args.worker_memory else
-                 int(0.8 * devices.total_memory() / len(places)))
+        from . import ray_workers
+    except ImportError as exc:
+        raise SystemExit(f"matoptd: --ray needs Ray ({exc}); pip install 'matopt[daemon,ray]'")
+    try:
+        ray_workers.connect(args.ray)
+    except Exception as exc:  # noqa: BLE001 - Ray raises many kinds; the message says which
+        raise SystemExit(f"matoptd: --ray {args.ray}: cannot connect: {exc}")
+    limit = _memory_limit(args, None)
+    cluster = ray_workers.ClusterWatch(
+        lambda slot: ray_workers.make_worker(slot, args.variant, store.read_blob,
+                                             args.data_dir),
+        add=lambda w: runner.add_worker(w), retire=lambda n, why: runner.retire(n, why),
+        known=lambda: runner.workers, cpu_workers=args.workers, memory_limit=limit)
+    runner = Runner(store, cluster.initial(), args.watchdog, args.slice, args.max_samples)
+    for failure in runner.start():
+        log.warning("left out: %s", failure)
+    if not runner.ready:
+        log.warning("no worker is ready on the Ray cluster yet; jobs wait until one is")
+    cluster.start()
+    return runner, cluster
+
+
+def _memory_limit(args: argparse.Namespace, workers: int | None) -> int | None:
+    """--worker-memory in bytes; else 80% of this machine's memory shared by ``workers``
+    (None: each Ray node's own memory decides)."""
+    try:
+        if args.worker_memory:
+            return devices.parse_size(args.worker_memory)
     except ValueError as exc:
         raise SystemExit(f"matoptd: --worker-memory: {exc}")
+    return int(0.8 * devices.total_memory() / workers) if workers else None
+
+
+def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
+         ) -> tuple[Runner, list[str]]:
+    limit = _memory_limit(args, len(places))
     workers = [Worker(f"workers/{i}", p,
                       args.variant or ("cuda_ad_rgb" if p.cuda is not None else "llvm_ad_rgb"),
                       args.data_dir, limit, store.read_blob)

@@ -116,14 +116,36 @@ class Runner:
         returns why the ones that failed did. The lanes of failed workers end."""
         for w in self.workers.values():
             self._first_start[w.name] = concurrent.futures.Future()
-            lane = threading.Thread(target=self._lane, args=(w,), name=f"lane-{w.name}",
-                                    daemon=True)
-            self._lanes.append(lane)
-            lane.start()
+            self._start_lane(w)
         failures = [f.result() for f in self._first_start.values()]
-        if self.ready:
-            self._monitor.start()
+        self._monitor.start()
         return [f for f in failures if f]
+
+    def add_worker(self, w: Worker) -> None:
+        """A worker that joined while the daemon runs (a Ray node came up): its lane starts
+        it and it takes work once ready."""
+        with self.lock:
+            if self.stopping:
+                return
+            # A new dict rather than a change to it: other threads iterate the old one.
+            self.workers = {**self.workers, w.name: w}
+            self.scheduler.add_worker(w.name)
+        self._start_lane(w)
+
+    def retire(self, name: str, why: str) -> None:
+        """The worker's node left: it is not restarted, and its lane ends once whatever it
+        was doing has been settled (a call in flight fails when its process goes)."""
+        w = self.workers.get(name)
+        if w is not None and not w.gone:
+            w.gone, w.last_exit = True, why
+            with self.lock:
+                self.wake.notify_all()
+
+    def _start_lane(self, w: Worker) -> None:
+        lane = threading.Thread(target=self._lane, args=(w,), name=f"lane-{w.name}",
+                                daemon=True)
+        self._lanes.append(lane)
+        lane.start()
 
     @property
     def ready(self) -> bool:
@@ -176,6 +198,7 @@ class Runner:
         with self.lock:
             self.scheduler.add_job(job.name, job.owner)
             self.wake.notify_all()
+        self._note_waiting()
 
     async def task(self, fn: Callable[[RemoteEngine], Any]) -> Any:
         """Runs ``fn(engine)`` on the next free worker, before any job's next iteration."""
@@ -186,7 +209,8 @@ class Runner:
             if self.scheduler.held:
                 raise DiskFull()
             if not any(w.state != "failed" for w in self.workers.values()):
-                raise Unavailable("no renderer worker is running")
+                raise Unavailable("no renderer worker is running (matopt info lists them); "
+                                  "try again once one is: jobs already created wait for it")
             self.scheduler.add_task((fn, fut))
             self.wake.notify_all()
         return await asyncio.wrap_future(fut)
@@ -265,7 +289,7 @@ class Runner:
                     host=w.info.get("host", ""), pid=w.pid, jobs=mine, job_count=len(loaded),
                     restarts=w.restarts, last_exit=w.last_exit, memory_bytes=w.memory(),
                     memory_limit_bytes=w.memory_limit,
-                    threads=w.info.get("threads", w.placement.threads)))
+                    threads=w.info.get("threads", w.placement.threads), node=w.node))
         return out
 
     # -- watching ---------------------------------------------------------------------------
@@ -304,12 +328,14 @@ class Runner:
     # -- lanes ------------------------------------------------------------------------------
 
     def _lane(self, w: Worker) -> None:
-        first = self._first_start[w.name]
+        first = self._first_start.get(w.name) or concurrent.futures.Future()
         try:
             w.start()
         except WorkerLost as lost:
             w.state = "failed"
             first.set_result(f"{w.name} ({w.placement.describe()}): {lost.reason}")
+            if w.gone:
+                self._remove(w)
             return
         first.set_result("")
         with self.lock:
@@ -323,6 +349,8 @@ class Runner:
                 self._do(w, action)
             except WorkerLost as lost:
                 self._settle(w, action, lost)
+                if w.gone:
+                    self._remove(w)
                 if self.stopping or not self._restart(w):
                     return
             except DiskFull:
@@ -331,10 +359,12 @@ class Runner:
                 log.exception("%s: %s of %s failed", w.name, action.kind, action.job)
                 self._give_up(w, action)
         self._close(w)
+        if w.gone:
+            self._remove(w)
 
     def _next(self, w: Worker) -> Action | None:
         with self.lock:
-            while not self.stopping:
+            while not self.stopping and not w.gone:
                 action = self.scheduler.next(w.name)
                 if action is not None:
                     return action
@@ -409,6 +439,7 @@ class Runner:
             if job.state == pb.QUEUED:
                 job.state = pb.RUNNING
             job.integrator, job.integrator_reason = started.integrator, started.integrator_reason
+            job.worker = action.worker
             job.sensors_rendered[:] = started.sensors
             job.notes.extend(n for n in started.notes if n not in job.notes)
             if job.resumed_from == "pending":
@@ -600,6 +631,9 @@ class Runner:
                 self._fail(None, running, action, "the renderer process " + ", then ".join(
                     outcome.crashes) + "; a job that takes its worker down twice is not "
                     "tried again (other jobs were not affected)")
+            elif lost.cause == "gone":
+                self._note_reload(running.name, f"its worker {what}; the job goes on from its "
+                                  "last checkpoint on another worker")
             else:
                 self._note_reload(running.name, f"the renderer process {what}; the job goes "
                                   "on from its last checkpoint on a fresh worker")
@@ -615,12 +649,46 @@ class Runner:
                 return
             job.notes.append(note)
             job.resumed_from = "pending"
+            if job.state == pb.RUNNING:  # it waits for a worker again
+                job.state = pb.QUEUED
             self._save(job)
 
+    def _remove(self, w: Worker) -> None:
+        """A worker whose node left: out of the scheduler and the listing. When it was the
+        last, waiting jobs say why they wait."""
+        with self.lock:
+            if w.name not in self.workers:
+                return
+            outcome = self.scheduler.worker_lost(w.name, counts=False)
+            self.scheduler.remove_worker(w.name)
+            self.workers = {n: x for n, x in self.workers.items() if n != w.name}
+            self.wake.notify_all()
+        log.warning("%s removed: %s", w.name, w.last_exit)
+        for name in [outcome.job] * bool(outcome.job) + outcome.others:
+            self._note_reload(name, f"its worker {w.last_exit}; the job goes on from its "
+                              "last checkpoint on another worker")
+        self._note_waiting()
+
+    def _note_waiting(self) -> None:
+        """With no worker left, jobs wait QUEUED (they do not fail) and say why."""
+        with self.lock:
+            if any(not w.gone and w.state != "failed" for w in self.workers.values()):
+                return
+            note = ("waiting: no renderer worker is available (every worker's machine has "
+                    "left, or none has joined yet); the job runs when one joins")
+            for name, sched in self.scheduler.jobs.items():
+                if not sched.wants_worker:
+                    continue
+                job = self.store.get_job(name)
+                if note not in job.notes:
+                    job.notes.append(note)
+                    self._save(job)
+
     def _restart(self, w: Worker) -> bool:
-        """A fresh process for the lane; False when the daemon stops first."""
+        """A fresh process for the lane; False when the daemon stops first or the worker's
+        node has left."""
         for delay in RESTART_DELAYS_S + (RESTART_DELAYS_S[-1],) * 1000:
-            if self._stopped.wait(delay):  # a shutdown cuts the wait short
+            if self._stopped.wait(delay) or w.gone:  # a shutdown cuts the wait short
                 return False
             w.state = "restarting"
             w.restarts += 1
@@ -628,6 +696,9 @@ class Runner:
                 w.start()
             except WorkerLost as lost:
                 log.error("%s did not restart: %s", w.name, lost.reason)
+                if w.gone:
+                    self._remove(w)
+                    return False
                 continue
             with self.lock:
                 self.scheduler.worker_ready(w.name)
@@ -657,8 +728,9 @@ class Runner:
                 except DiskFull:
                     pass  # filled up again meanwhile
             for name in late:
-                self.workers[name].kill("was stopped: its job was cancelled during a long "
-                                        "iteration", "stopped")
+                if name in self.workers:
+                    self.workers[name].kill("was stopped: its job was cancelled during a "
+                                            "long iteration", "stopped")
             time.sleep(MONITOR_PERIOD_S)
 
     # -- scenes -----------------------------------------------------------------------------

@@ -109,6 +109,10 @@ class Scheduler:
     def add_worker(self, name: str) -> None:
         self.workers[name] = Worker(name)
 
+    def remove_worker(self, name: str) -> None:
+        """The worker is gone for good (its machine left); call ``worker_lost`` first."""
+        self.workers.pop(name, None)
+
     def worker_ready(self, name: str) -> None:
         self.workers[name].ready = True
 

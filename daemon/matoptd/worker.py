@@ -59,7 +59,7 @@ def _message(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
-def _own_directory(cache: Path) -> Path:
+def own_directory(cache: Path) -> Path:
     """Moves this process into an empty, read-only directory of its own, before Mitsuba is
     imported: a relative file name a scene gets past every check then finds nothing there,
     rather than the daemon's files in the directory it was started from. Paths given relative
@@ -94,6 +94,8 @@ def warm_up() -> None:
 
 
 def serve(conn: Connection, cache: Path) -> None:
+    """Answers calls until the daemon says exit or goes away. ``conn`` is a socket
+    connection, or anything with its ``send`` and ``recv`` (a Ray actor's queues)."""
     from .engine.service import MitsubaEngine
 
     def fetch(sha256: str) -> bytes:
@@ -123,6 +125,26 @@ def serve(conn: Connection, cache: Path) -> None:
             conn.send(("ok", result))
 
 
+def prepare(variant_name: str, threads: int) -> dict:
+    """Imports Mitsuba on ``variant_name``, loads its plugins and warms the kernels: what a
+    worker (a process here, or a Ray actor) does once before its first call. Returns what the
+    daemon shows of it."""
+    began = time.perf_counter()
+    import drjit as dr
+
+    if threads and not variant_name.startswith("cuda"):
+        # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
+        # writer wait forever. On one core the two take turns.
+        dr.set_thread_count(max(2, threads))
+    from .engine import scene, variant
+    name, device = variant.select(variant_name)
+    scene.preload_plugins()
+    warm_up()
+    return {"variant": name, "device": device, "pid": os.getpid(),
+            "host": socket.gethostname(), "threads": threads or dr.thread_count(),
+            "seconds": time.perf_counter() - began}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="matoptd.worker")
     p.add_argument("--fd", type=int, required=True, help="this end of the daemon's socket pair")
@@ -133,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=0, help="Dr.Jit threads (CPU variants)")
     args = p.parse_args(argv)
     _die_with_parent(args.parent)
-    args.cache = _own_directory(args.cache)
+    args.cache = own_directory(args.cache)
     # Ctrl-C in the daemon's terminal reaches the whole process group; the daemon decides
     # when its workers stop, after it has checkpointed their jobs.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -141,25 +163,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.cores:
         os.sched_setaffinity(0, {int(c) for c in args.cores.split(",")})
     conn = Connection(args.fd)
-    began = time.perf_counter()
     try:
-        import drjit as dr
-
-        if args.threads and not args.variant.startswith("cuda"):
-            # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
-            # writer wait forever. On one core the two take turns.
-            dr.set_thread_count(max(2, args.threads))
-        from .engine import scene, variant
-        name, device = variant.select(args.variant)
-        scene.preload_plugins()
-        warm_up()
+        info = prepare(args.variant, args.threads)
     except BaseException as exc:  # noqa: BLE001 - reported to the daemon, which says why
         conn.send(("failed", _message(exc)))
         return 1
-    conn.send(("ready", {"variant": name, "device": device, "pid": os.getpid(),
-                         "host": socket.gethostname(),
-                         "threads": args.threads or dr.thread_count(),
-                         "seconds": time.perf_counter() - began}))
+    conn.send(("ready", info))
     serve(conn, args.cache)
     return 0
 

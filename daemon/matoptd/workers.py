@@ -33,9 +33,9 @@ STOP_TIMEOUT_S = 10.0
 
 class WorkerLost(Exception):
     """The worker process ended or was stopped during a call. ``cause`` is "died" (signal or
-    exit), "memory" (over its limit), "hung" (the watchdog) or "stopped" (on purpose: a
-    cancel inside a long render, the daemon shutting down); only "died" and "hung" count
-    against the job that was running."""
+    exit), "memory" (over its limit), "hung" (the watchdog), "stopped" (on purpose: a
+    cancel inside a long render, the daemon shutting down) or "gone" (its machine left the
+    Ray cluster); only "died" and "hung" count against the job that was running."""
 
     def __init__(self, reason: str, cause: str) -> None:
         super().__init__(reason)
@@ -65,6 +65,8 @@ class Worker:
     info: dict = field(default_factory=dict)  # from the worker: variant, device, pid, ...
     restarts: int = 0
     last_exit: str = ""
+    node: str = ""            # the Ray node it runs on ("" for a local process)
+    gone: bool = False        # its node left the cluster: it is not restarted
     _proc: subprocess.Popen | None = None
     _conn: Connection | None = None
     _stopping: str = ""       # why we stopped it, when we did
@@ -176,7 +178,7 @@ class Worker:
             conn.send(("call", method, args))
             while True:
                 if not conn.poll(0.25):
-                    if self._proc.poll() is not None:
+                    if self._exited():
                         raise self._lost()
                     if deadline is not None and time.monotonic() > deadline:
                         self.kill(f"stopped answering: no reply to '{method}' in "
@@ -202,6 +204,9 @@ class Worker:
             conn.send(("missing", f"blob {sha256} is not available: {exc}"))
         else:
             conn.send(("blob", data))
+
+    def _exited(self) -> bool:
+        return self._proc is None or self._proc.poll() is not None
 
     def _lost(self) -> WorkerLost:
         """What ended the process, once it has ended."""
