@@ -5,7 +5,8 @@ port, its variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; t
 Mitsuba baselines use the same variant), so that no case inherits another's jobs, history or
 worker state; a case module's ``DAEMON`` (keyword arguments of ``common.daemon``: users for a
 tokens file, extra flags) says how its daemon starts, and a case that compares daemon
-configurations starts those itself. Each case measures its own baseline in the same run,
+configurations starts those itself, and one with ``NEEDS_DAEMON = False`` (a simulation)
+gets none (``server`` is None). Each case measures its own baseline in the same run,
 alternating with it, and reports ratios. Writes CSVs, PNG plots and summary.md to --out; a
 full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
 
@@ -36,7 +37,7 @@ import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
-         "switching", "worker_restart", "two_workers", "geometry"]
+         "switching", "worker_restart", "two_workers", "geometry", "scheduling", "ray_cluster"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 # Cases no longer run, and why: the summary says so, so that a reader of an older report
 # knows where its figures went.
@@ -58,11 +59,14 @@ def run_case(name: str, settings: Settings) -> tuple[Result, object]:
     info = None
     try:
         module = importlib.import_module(name)
-        with common.daemon(settings.work, name, **getattr(module, "DAEMON", {})) as daemon:
-            info = daemon.client.info
-            print(f"bench: daemon {info.variant} on {info.device}, {len(info.workers)} "
-                  "worker(s)", file=sys.stderr, flush=True)
-            result = module.run(settings, daemon)
+        if not getattr(module, "NEEDS_DAEMON", True):  # a simulation: nothing to start
+            result = module.run(settings, None)
+        else:
+            with common.daemon(settings.work, name, **getattr(module, "DAEMON", {})) as daemon:
+                info = daemon.client.info
+                print(f"bench: daemon {info.variant} on {info.device}, {len(info.workers)} "
+                      "worker(s)", file=sys.stderr, flush=True)
+                result = module.run(settings, daemon)
     except Exception as exc:  # noqa: BLE001 - reported in the summary
         traceback.print_exc()
         result = Result(name, name, [Target("case ran", f"FAILED: {type(exc).__name__}: {exc}",
@@ -100,8 +104,9 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         f"Latest {'quick (smoke) ' if settings.quick else ''}run of `python bench/run.py"
         f"{' --quick' if settings.quick else ''}`: {when}, {seconds / 60:.1f} min.",
         (f"Daemon: {info.variant} on {info.device} ({len(info.workers)} worker process(es) "
-         f"by default); matopt {info.version}, commit " if info else "Daemon: did not start; "
-         "commit ") + f"{common.git_revision()}; Python {platform.python_version()}, "
+         f"by default); matopt {info.version}, commit " if info else "Daemon: none started "
+         "(it failed, or no case run needed one); commit ")
+        + f"{common.git_revision()}; Python {platform.python_version()}, "
         f"{os.cpu_count()} CPU threads.",
         "",
         "Every figure is a ratio against a baseline measured in the same run, alternating "

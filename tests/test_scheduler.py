@@ -280,3 +280,30 @@ def test_a_step_call_lasts_about_a_quarter_second(per_iteration, expected):
     clock.t += per_iteration
     s.done(first, iterations=1)
     assert s.next("w0").n == expected
+
+
+def test_workers_that_ask_at_once_go_to_different_users():
+    # Eight free workers ask before any of them has finished anything (a burst of jobs
+    # arriving on an idle cluster): one user with many jobs must not take them all.
+    s, _ = make(workers=8)
+    for i in range(20):
+        s.add_job(f"big{i}", "alice")
+    for user in ("bob", "carol", "dave"):
+        s.add_job(f"{user}0", user)
+    actions = [s.next(w) for w in list(s.workers)]
+    users = collections.Counter(a.job.rstrip("0123456789") for a in actions)
+    assert users["bob"] == users["carol"] == users["dave"] == 1
+    assert users["big"] == 5  # the rest: the others have nothing more to run
+
+
+def test_a_charge_for_work_in_flight_is_refunded_when_it_is_done_or_lost():
+    s, clock = make(workers=2)
+    s.add_job("a", "alice")
+    s.add_job("b", "bob")
+    load_a, load_b = s.next("w0"), s.next("w1")
+    assert s.usage["alice"] > 0 and s.usage["bob"] > 0  # charged when they began
+    clock.t = 0.4
+    s.done(load_a)
+    assert s.usage["alice"] == pytest.approx(0.4)  # the estimate replaced by the real time
+    s.worker_lost("w1", "died")
+    assert s.usage["bob"] == pytest.approx(0.0)  # nothing was done: nothing is owed

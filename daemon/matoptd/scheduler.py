@@ -48,6 +48,8 @@ class Action:
     n: int = 0
     task: Any = None
     began: float = 0.0
+    user: str = ""         # whose job it is
+    charged: float = 0.0   # seconds charged to the user when it began (see ``_begin``)
 
 
 @dataclass
@@ -102,6 +104,7 @@ class Scheduler:
         self.tasks: collections.deque = collections.deque()
         self.held = False  # nothing starts while set (the daemon cannot record results)
         self.usage: dict[str, float] = collections.defaultdict(float)  # per user
+        self.typical: dict[str, float] = {}  # seconds an action of each kind takes (EMA)
         self.served: dict[str, float] = collections.defaultdict(lambda: -math.inf)  # last
 
     # -- workers ----------------------------------------------------------------------------
@@ -124,6 +127,8 @@ class Scheduler:
         w = self.workers[name]
         lost = Lost()
         action, w.action = w.action, None
+        if action is not None:
+            self._refund(action)
         for job in [self.jobs[j] for j in w.resident if j in self.jobs]:
             job.worker, job.busy = None, False
             if action is not None and job.name == action.job:
@@ -231,6 +236,10 @@ class Scheduler:
         w = self.workers[action.worker]
         w.action = None
         seconds = self.clock() - action.began
+        self._refund(action)
+        if action.kind != "step":
+            t = self.typical.get(action.kind)
+            self.typical[action.kind] = seconds if t is None else EMA * seconds + (1 - EMA) * t
         job = self.jobs.get(action.job)
         if job is None:
             return
@@ -264,6 +273,7 @@ class Scheduler:
         waits to be loaded again from its last checkpoint."""
         w = self.workers[action.worker]
         w.action = None
+        self._refund(action)
         job = self.jobs.get(action.job)
         if job is not None:
             job.busy = False
@@ -272,14 +282,29 @@ class Scheduler:
     # -- inside -----------------------------------------------------------------------------
 
     def _begin(self, w: Worker, action: Action) -> Action:
+        """Starts the action and charges its user what it is expected to cost now, not when
+        it is done: decisions taken meanwhile (every free worker asks at once when many jobs
+        arrive) must see that user's account as already drawn on, or they all pick the same
+        user. ``done`` replaces the estimate with the real time."""
         action.began = self.clock()
         w.action = action
         if action.job:
-            self.jobs[action.job].busy = True
+            job = self.jobs[action.job]
+            job.busy = True
+            action.user = job.user
+            action.charged = (action.n * job.per_iteration
+                              if action.kind == "step" and job.per_iteration
+                              else self.typical.get(action.kind, self.step_seconds))
+            self.usage[job.user] += action.charged
             if action.job in w.resident:  # most recently run last
                 w.resident.remove(action.job)
                 w.resident.append(action.job)
         return action
+
+    def _refund(self, action: Action) -> None:
+        if action.user:
+            self.usage[action.user] -= action.charged
+            action.charged = 0.0
 
     def _unload(self, job: Job, w: Worker) -> None:
         job.worker = None
