@@ -649,8 +649,8 @@ class Runner:
                 return
             job.notes.append(note)
             job.resumed_from = "pending"
-            if job.state == pb.RUNNING:  # it waits for a worker again
-                job.state = pb.QUEUED
+            if job.state == pb.RUNNING and not self.stopping:  # it waits for a worker again
+                job.state = pb.QUEUED  # (on shutdown it stays RUNNING, to be INTERRUPTED)
             self._save(job)
 
     def _remove(self, w: Worker) -> None:
