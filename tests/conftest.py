@@ -124,3 +124,14 @@ def wait_state(stubs: Stubs, name: str, states, timeout: float = 300) -> pb.Job:
             return job
         time.sleep(0.05)
     raise AssertionError(f"{name} did not reach {states}: {job}")
+
+
+def wait_iteration(stubs: Stubs, name: str, at_least: int, timeout: float = 180) -> pb.Job:
+    """Until the job has done ``at_least`` iterations."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = stubs.jobs.GetJob(pb.GetJobRequest(name=name))
+        if job.iteration >= at_least:
+            return job
+        time.sleep(0.05)
+    raise AssertionError(f"{name} did not reach iteration {at_least}: {job}")

@@ -16,7 +16,7 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_state
+from conftest import TOKENS, Daemon, Stubs, wait_iteration, wait_state
 from scenes import create_scene, png, textured_quad
 
 pytestmark = pytest.mark.faults
@@ -62,16 +62,6 @@ def wait_worker(stubs: Stubs, states, timeout: float = 120) -> pb.Worker:
             return w
         time.sleep(0.1)
     raise AssertionError(f"worker did not reach {states}: {w}")
-
-
-def wait_iteration(stubs: Stubs, name: str, at_least: int, timeout: float = 120) -> pb.Job:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        job = stubs.jobs.GetJob(pb.GetJobRequest(name=name))
-        if job.iteration >= at_least:
-            return job
-        time.sleep(0.05)
-    raise AssertionError(f"{name} did not reach iteration {at_least}: {job}")
 
 
 class Poller:

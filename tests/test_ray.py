@@ -18,7 +18,7 @@ ray_cluster_utils = pytest.importorskip("ray.cluster_utils")
 
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
-from conftest import TOKENS, Daemon, Stubs, wait_state  # noqa: E402
+from conftest import TOKENS, Daemon, Stubs, wait_iteration, wait_state  # noqa: E402
 
 pytestmark = pytest.mark.ray
 
@@ -84,16 +84,6 @@ def assert_recovered(stubs: Stubs, name: str, tolerance: float = 0.1) -> None:
     for p in best.parameters:
         error = max(abs(a - b) for a, b in zip(p.value, TRUTH[p.key]))
         assert error < tolerance, (name, p.key, list(p.value))
-
-
-def wait_iteration(stubs: Stubs, name: str, at_least: int, timeout: float = 180) -> pb.Job:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        job = stubs.jobs.GetJob(pb.GetJobRequest(name=name))
-        if job.iteration >= at_least:
-            return job
-        time.sleep(0.1)
-    raise AssertionError(f"{name} did not reach iteration {at_least}: {job}")
 
 
 def test_workers_show_their_node_device_and_state(service, cluster):
