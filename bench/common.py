@@ -327,19 +327,19 @@ def run_job(client: mc.Client, spec: pb.JobSpec,
 
 
 def require_success(run: JobRun, what: str) -> None:
-    if run.job.state != pb.SUCCEEDED:
+    if run.job.state != pb.JOB_STATE_SUCCEEDED:
         raise RuntimeError(f"{what}: job {run.job.name} ended "
                            f"{mc.state_name(run.job.state)}: {run.job.error}")
 
 
 def wall_spec(scene: pb.Scene, ref_blob: str, *, iterations: int, spp: int,
-              schedule: int = pb.CONSTANT, seed: int = 0) -> pb.JobSpec:
+              schedule: int = pb.SCHEDULE_CONSTANT, seed: int = 0) -> pb.JobSpec:
     """The overhead case's job: the Cornell box's red and green walls from grey, Adam 0.03,
     MSE, no early stop (min_error 0), so every run does exactly ``iterations`` iterations."""
     return pb.JobSpec(scene=scene.name, references=[pb.Reference(blob=ref_blob)],
                       parameters=[pb.ParameterSpec(key=k, initial_value=GREY) for k in WALLS],
                       iterations=iterations, spp=spp, min_error=0.0, learning_rate=0.03,
-                      schedule=schedule, loss=pb.MSE, seed=seed)
+                      schedule=schedule, loss=pb.LOSS_MSE, seed=seed)
 
 
 # ---------------------------------------------------------------------------------------------

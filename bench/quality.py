@@ -38,6 +38,7 @@ import plain
 from common import Result, Settings, Target
 from matopt import client as mc
 from matopt.cli import report
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED
 
@@ -240,9 +241,9 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         rows.append({k: v for k, v in r.items() if k != "files"})
         result.files += r["files"]
         keys = ", ".join(_name(k) for k in case.target_keys)
-        if r["daemon_state"] != pb.SUCCEEDED:
+        if r["daemon_state"] != pb.JOB_STATE_SUCCEEDED:
             result.targets.append(Target(
-                f"{case.name}: daemon job", f"FAILED ({pb.State.Name(r['daemon_state'])}): "
+                f"{case.name}: daemon job", f"FAILED ({enums.short_name(pb.JobState, r['daemon_state'])}): "
                 f"{r['daemon_error']}", False))
             continue
         d, p = r["daemon_time_to_2pct"], r["plain_time_to_2pct"]

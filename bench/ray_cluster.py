@@ -32,7 +32,7 @@ def workers_ready(d: common.Daemon, count: int, timeout: float = 300) -> list[pb
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         listed = d.client.server.GetServerInfo(pb.GetServerInfoRequest()).workers
-        if len(listed) == count and all(w.state == pb.WORKER_IDLE for w in listed):
+        if len(listed) == count and all(w.state == pb.WORKER_STATE_IDLE for w in listed):
             return list(listed)
         time.sleep(0.2)
     raise RuntimeError(f"the Ray daemon did not get {count} idle worker(s) in {timeout} s")

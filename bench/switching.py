@@ -210,7 +210,7 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
     def pause(names: dict[str, str]) -> None:
         for name, user in names.items():
             clients[user].jobs.PauseJob(pb.PauseJobRequest(name=name))
-        wait_states(clients, names, (pb.PAUSED,))
+        wait_states(clients, names, (pb.JOB_STATE_PAUSED,))
 
     def resume(names: dict[str, str]) -> None:
         for name, user in names.items():
@@ -258,7 +258,7 @@ def measure(settings: Settings, server: common.Daemon, clients: dict[str, mc.Cli
         rows.append({"round": "newcomer", "jobs": len(many) + 1, "user": user,
                      "create_to_first_iteration_s": waits[-1]})
         clients[user].jobs.CancelJob(pb.CancelJobRequest(name=name))
-        wait_states(clients, {name: user}, (pb.CANCELLED,))
+        wait_states(clients, {name: user}, (pb.JOB_STATE_CANCELLED,))
     pause(many)
     rows += [{"round": "switch", "switch_seconds": c} for c in cost]
     rows += [{"round": "slice", "slice_seconds": s} for s in lengths]

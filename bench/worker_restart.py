@@ -103,7 +103,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         job = seen.get("job") or client.jobs.GetJob(pb.GetJobRequest(name=name))
         history = list(client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations)
         problems = history_problems(history, ITERATIONS)
-        if job.state != pb.SUCCEEDED:
+        if job.state != pb.JOB_STATE_SUCCEEDED:
             problems.insert(0, f"ended {mc.state_name(job.state)}: {job.error}")
         if not any("SIGKILL" in n for n in job.notes):
             problems.append("no note says why the job was resumed")

@@ -78,8 +78,8 @@ class Stubs:
     def __init__(self, address: str, token: str | None = None) -> None:
         self.channel = grpc.insecure_channel(address)
         self.metadata = (("authorization", f"Bearer {token}"),) if token else ()
-        for name, stub in (("blobs", rpc.BlobsStub), ("scenes", rpc.ScenesStub),
-                           ("jobs", rpc.JobsStub), ("server", rpc.ServerStub)):
+        for name, stub in (("blobs", rpc.BlobServiceStub), ("scenes", rpc.SceneServiceStub),
+                           ("jobs", rpc.JobServiceStub), ("server", rpc.ServerServiceStub)):
             setattr(self, name, _WithMetadata(stub(self.channel), self.metadata))
 
     def close(self) -> None:

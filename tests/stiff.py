@@ -16,11 +16,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 from scenes import camera, create_scene, medium_sphere, studio
 
-FINAL = (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED)
+FINAL = (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED)
 # Where the loss does not fall, noise decides whether it ends a little above or a little below
 # where it started: the job says either, and both mean the same to the user.
 LOSS_DID_NOT_FALL = ("the loss rose", "the loss fell by less than 10%")
@@ -241,8 +242,8 @@ def run(stubs, case: Case, timeout: float = 600) -> Outcome:
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
     values = [{v.key: list(v.value) for v in r.parameters} for r in history]
     final = {}
-    if job.state == pb.SUCCEEDED:
-        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.LAST))
+    if job.state == pb.JOB_STATE_SUCCEEDED:
+        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_LAST))
         final = {v.key: np.array(v.value) for v in last.parameters}
     everything = [x for row in values for vs in row.values() for x in vs]
     in_range = all(params[k].min <= x <= params[k].max
@@ -257,8 +258,8 @@ def run(stubs, case: Case, timeout: float = 600) -> Outcome:
 def verdict(case: Case, out: Outcome) -> list[str]:
     """What the case promises and the outcome broke, in words (empty: it held)."""
     broken = []
-    if out.job.state != pb.SUCCEEDED:
-        return [f"the job ended {pb.State.Name(out.job.state)}: {out.job.error}"]
+    if out.job.state != pb.JOB_STATE_SUCCEEDED:
+        return [f"the job ended {enums.short_name(pb.JobState, out.job.state)}: {out.job.error}"]
     if not out.finite:
         broken.append("a parameter took a NaN/Inf value")
     if not out.in_range:

@@ -40,7 +40,7 @@ def test_resolution_sets_the_height_of_every_film():
     est = admission.job_estimate(settings({1: "wide.png"}, spp=2, resolution=100), FILMS,
                                  {1: rgb(300, 100)})
     assert [(r.width, r.height) for r in est.renders] == [(300, 100)]
-    assert "resolution 100" in est.renders[0].film_from
+    assert "film_height 100" in est.renders[0].film_from
     assert "'wide.png' (300x100 px)" in est.renders[0].film_from
 
 
@@ -100,7 +100,7 @@ def test_a_film_side_over_the_limit_is_invalid_and_says_why_it_is_that_large():
     tall = admission.job_estimate(settings({1: "a.png"}, resolution=20000), FILMS,
                                   {1: rgb(32, 32)})
     message = refused(InvalidArgument, admission.check, tall, Limits())
-    assert "20000x20000 px film (from resolution 20000" in message
+    assert "20000x20000 px film (from film_height 20000" in message
 
 
 def test_film_memory_counts_every_sensor_of_a_request():

@@ -56,11 +56,11 @@ def test_cornell_box_parameters_have_kinds_values_and_ranges(stubs):
     params = {p.key: p for p in stubs.scenes.ListSceneParameters(
         pb.ListSceneParametersRequest(name=scene.name)).parameters}
     red = params["red.reflectance.value"]
-    assert red.kind == pb.RGB and list(red.shape) == [3]
+    assert red.kind == pb.PARAMETER_KIND_RGB and list(red.shape) == [3]
     assert red.value == pytest.approx([0.570068, 0.0430135, 0.0443706], abs=1e-6)
     assert (red.min, red.max, red.default_learning_rate) == (0.0, 1.0, pytest.approx(0.1))
     assert params["light.emitter.radiance.value"].max == float("inf")
-    assert params["small-box.vertex_positions"].kind == pb.VERTEX_ARRAY
+    assert params["small-box.vertex_positions"].kind == pb.PARAMETER_KIND_VERTEX_ARRAY
 
 
 def test_override_not_declared_is_a_warning_not_an_error(stubs):
@@ -105,7 +105,7 @@ def test_watch_sends_state_first_then_iterations_then_final_state(stubs):
     _, job = _cornell_job(stubs, 5)
     events = list(stubs.jobs.WatchJob(pb.WatchJobRequest(name=job.name)))
     assert events[0].HasField("job")
-    assert events[-1].job.state == pb.SUCCEEDED
+    assert events[-1].job.state == pb.JOB_STATE_SUCCEEDED
     iterations = [e.iteration for e in events if e.HasField("iteration")]
     assert [r.iteration for r in iterations] == list(range(iterations[0].iteration, 5))
     assert all(r.seconds > 0 and r.loss > 0 for r in iterations)
@@ -117,30 +117,30 @@ def test_watch_sends_state_first_then_iterations_then_final_state(stubs):
 
 def test_best_result_holds_the_parameters_that_produced_its_loss(stubs):
     _, job = _cornell_job(stubs, 8)
-    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
     history = {r.iteration: r for r in stubs.jobs.GetJobHistory(
         pb.GetJobHistoryRequest(name=job.name)).iterations}
     assert sorted(history) == list(range(8))
-    best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.BEST))
+    best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_BEST))
     assert best.loss == min(r.loss for r in history.values())
     recorded = {p.key: list(p.value) for p in history[best.iteration].parameters}
     assert {p.key: list(p.value) for p in best.parameters} == recorded
     assert sorted(i.role for i in best.images) == ["error", "initial", "optimized", "reference"]
-    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
     assert last.iteration == 7
 
 
 def test_pause_resume_cancel(stubs):
     _, job = _cornell_job(stubs, 400)
-    wait_state(stubs, job.name, (pb.RUNNING,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_RUNNING,))
     stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
-    paused = wait_state(stubs, job.name, (pb.PAUSED,))
+    paused = wait_state(stubs, job.name, (pb.JOB_STATE_PAUSED,))
     at = paused.iteration
     assert stubs.jobs.GetJob(pb.GetJobRequest(name=job.name)).iteration == at  # it stays put
     stubs.jobs.ResumeJob(pb.ResumeJobRequest(name=job.name))
-    wait_state(stubs, job.name, (pb.RUNNING,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_RUNNING,))
     stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-    cancelled = wait_state(stubs, job.name, (pb.CANCELLED,))
+    cancelled = wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,))
     assert at <= cancelled.iteration < 400
     # A cancelled job keeps what it found so far.
     best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
@@ -154,18 +154,18 @@ def test_two_jobs_take_turns(stubs):
     # Jobs share a worker in slices of seconds: long enough jobs take turns.
     _, a = _cornell_job(stubs, 5000)
     _, b = _cornell_job(stubs, 5000)
-    wait_state(stubs, b.name, (pb.RUNNING,))
+    wait_state(stubs, b.name, (pb.JOB_STATE_RUNNING,))
     ja = stubs.jobs.GetJob(pb.GetJobRequest(name=a.name))
-    assert ja.state == pb.RUNNING and ja.iteration < 5000  # b started before a finished
+    assert ja.state == pb.JOB_STATE_RUNNING and ja.iteration < 5000  # b started before a finished
     for job in (a, b):
         stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-        wait_state(stubs, job.name, (pb.CANCELLED,))
+        wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,))
 
 
 def test_list_jobs_pages(stubs):
     names = [_cornell_job(stubs, 1)[1].name for _ in range(3)]
     for n in names:
-        wait_state(stubs, n, (pb.SUCCEEDED,))
+        wait_state(stubs, n, (pb.JOB_STATE_SUCCEEDED,))
     seen, token = [], ""
     while True:
         page = stubs.jobs.ListJobs(pb.ListJobsRequest(page_size=2, page_token=token))
@@ -195,11 +195,11 @@ def test_film_follows_the_reference_aspect_ratio_and_nan_pixels_are_masked(stubs
 
     square = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32", "resy": "32"}))
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=square.name, iterations=3, resolution=20,
+        scene=square.name, iterations=3, film_height=20,
         references=[pb.Reference(blob=f"blobs/{sha}", filename="holes.exr")],
         parameters=[pb.ParameterSpec(key="red.reflectance.value")])))
-    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
-    assert done.state == pb.SUCCEEDED, done.error
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
     assert any("8 NaN/Inf pixel(s) masked" in n for n in done.notes), done.notes
     assert any("renders 40x20" in n for n in done.notes), done.notes
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
@@ -212,7 +212,7 @@ def test_ground_truth_gives_parameter_errors_and_image_error(stubs):
     _, job = _cornell_job(stubs, 6, ground_truth=[
         pb.ParameterValue(key="red.reflectance.value", value=[0.570068, 0.0430135, 0.0443706])],
         image_error_every=2, image_error_spp=8)
-    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
     first = history[0].errors[0]
     assert first.key == "red.reflectance.value"
@@ -223,8 +223,8 @@ def test_ground_truth_gives_parameter_errors_and_image_error(stubs):
 
 def test_restart_from_a_finished_job_starts_where_it_ended(stubs):
     scene, job = _cornell_job(stubs, 4)
-    wait_state(stubs, job.name, (pb.SUCCEEDED,))
-    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
     ended = {v.key: list(v.value) for v in last.parameters}
     old = stubs.jobs.GetJob(pb.GetJobRequest(name=job.name)).spec
     spec = pb.JobSpec()
@@ -234,10 +234,10 @@ def test_restart_from_a_finished_job_starts_where_it_ended(stubs):
         del p.initial_value[:]
     spec.parameters[0].initial_value[:] = [0.1, 0.2, 0.3]  # and one edited initial value
     again = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec, initial_from_job=job.name,
-                                                     initial_from_which=pb.LAST))
+                                                     initial_from_which=pb.WHICH_LAST))
     starts = {p.key: list(p.initial_value) for p in again.spec.parameters}
     assert starts[WALLS[0]] == pytest.approx([0.1, 0.2, 0.3])
     for key in WALLS[1:]:
         assert starts[key] == ended[key]
-    done = wait_state(stubs, again.name, (pb.SUCCEEDED, pb.FAILED))
-    assert done.state == pb.SUCCEEDED and done.spec.iterations == 2
+    done = wait_state(stubs, again.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED and done.spec.iterations == 2

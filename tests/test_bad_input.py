@@ -138,12 +138,13 @@ def test_unknown_resources_are_not_found(stubs):
         assert "nope" in err.details() or "a" * 64 in err.details()
 
 
-def test_mean_bias_error_is_refused_as_an_objective(stubs, cornell):
+def test_a_loss_this_daemon_does_not_know_is_refused_with_the_choices(stubs, cornell):
+    """5 was the mean bias error, a diagnostic that cannot be minimized; v1 reserves it."""
     scene, ref = cornell
     err = rpc_error(stubs.jobs.CreateJob, job_request(
-        scene, [pb.Reference(blob=ref.exr_blob)], loss=pb.MEAN_BIAS_ERROR))
+        scene, [pb.Reference(blob=ref.exr_blob)], loss=5))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert "diagnostic, not an objective" in err.details()
+    assert "spec.loss 5 is not a Loss: expected one of LOSS_MSE (1)" in err.details()
 
 
 def test_a_scene_in_use_is_not_deleted(stubs, cornell):
@@ -158,7 +159,7 @@ def test_a_scene_in_use_is_not_deleted(stubs, cornell):
     assert err.code() == grpc.StatusCode.FAILED_PRECONDITION
     assert job.name in err.details() and "unfinished" in err.details()
     stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-    wait_state(stubs, job.name, (pb.CANCELLED,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,))
     stubs.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))
     err = rpc_error(stubs.scenes.GetScene, pb.GetSceneRequest(name=scene.name))
     assert err.code() == grpc.StatusCode.NOT_FOUND
@@ -178,7 +179,7 @@ def test_reference_without_a_finite_pixel_is_refused(stubs, cornell):
 
 
 @pytest.mark.parametrize("field,message", [
-    ("schedule", "spec.schedule 99 is not a Schedule: expected one of COSINE (1), CONSTANT (2)"),
+    ("schedule", "spec.schedule 99 is not a Schedule: expected one of SCHEDULE_COSINE (1), SCHEDULE_CONSTANT (2)"),
     ("sensor_mode", "spec.sensor_mode 99 is not a SensorMode"),
     ("loss", "spec.loss 99 is not a Loss"),
 ])
@@ -193,10 +194,10 @@ def test_unknown_enum_values_in_a_job(stubs, cornell, field, message):
 def test_unknown_which_and_state_filter(stubs):
     err = rpc_error(stubs.jobs.GetJobResult, pb.GetJobResultRequest(name="jobs/x", which=99))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert err.details().startswith("which 99 is not a Which: expected one of BEST (1), LAST")
+    assert err.details().startswith("which 99 is not a Which: expected one of WHICH_BEST (1), WHICH_LAST")
     err = rpc_error(stubs.jobs.ListJobs, pb.ListJobsRequest(state=99))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert err.details().startswith("state 99 is not a State")
+    assert err.details().startswith("state 99 is not a JobState")
 
 
 @pytest.mark.parametrize("token", ["99999999999999999999999", "-1", "\u0661\u0662", " 3",
@@ -284,7 +285,7 @@ def test_stored_blobs_are_read_only_and_match_their_names(stubs, daemon, cornell
     scene, ref = cornell
     job = stubs.jobs.CreateJob(job_request(scene, [pb.Reference(blob=ref.exr_blob)],
                                            iterations=2))
-    wait_state(stubs, job.name, (pb.SUCCEEDED,))
+    wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
     blobs = [p for p in (daemon.data_dir / "blobs").rglob("*") if p.is_file()
              and not p.name.startswith(".")]
     assert len(blobs) > 5

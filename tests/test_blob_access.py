@@ -167,7 +167,7 @@ def test_another_users_blob_cannot_be_used_until_uploaded_again(users, daemon):
     assert with_truth(start).spec.ground_truth[0].blob == f"blobs/{start}"
     job = bob.jobs.CreateJob(job_request(bob_scene, ref, initial_blob=f"blobs/{start}"))
     # What bob's job writes is bob's, not alice's.
-    wait_state(bob, job.name, (pb.SUCCEEDED,), timeout=300)
+    wait_state(bob, job.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
     result = bob.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
     optimized = next(i for i in result.images if i.role == "optimized")
     assert download(bob, optimized.exr_blob)
@@ -214,7 +214,7 @@ def test_a_blob_in_use_is_kept_and_the_last_owner_frees_the_disk(users, daemon):
     alice.blobs.DeleteBlob(pb.DeleteBlobRequest(name=f"blobs/{xml}"))
     assert missing(alice, xml) == [xml]
     alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-    wait_state(alice, job.name, (pb.CANCELLED,))
+    wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED,))
     alice.jobs.DeleteJob(pb.DeleteJobRequest(name=job.name))
     alice.blobs.DeleteBlob(pb.DeleteBlobRequest(name=render.exr_blob))
     assert not blob_file(daemon, bare(render.exr_blob)).exists()
@@ -239,7 +239,7 @@ def test_quota_refuses_uploads_keeps_results_and_then_refuses_new_work(users):
     listing = carol.blobs.ListBlobs(pb.ListBlobsRequest())
     assert (listing.used_bytes, listing.quota_bytes) == (QUOTA - 1, QUOTA)
     job = carol.jobs.CreateJob(job_request(scene, render.exr_blob))
-    wait_state(carol, job.name, (pb.SUCCEEDED,), timeout=300)
+    wait_state(carol, job.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
     result = carol.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
     assert all(download(carol, i.png_blob).startswith(b"\x89PNG") for i in result.images)
     used = usage(carol)
@@ -320,7 +320,7 @@ def test_a_data_dir_from_before_owners_gives_each_user_what_their_work_names(tmp
                     "display": "s.xml"}))
     store.add_job(pb.Job(name="jobs/j", owner="bob", spec=pb.JobSpec(
         scene="scenes/s", references=[pb.Reference(blob=f"blobs/{ref}")])), None)
-    store.put_result(pb.JobResult(job="jobs/j", which=pb.BEST,
+    store.put_result(pb.JobResult(job="jobs/j", which=pb.WHICH_BEST,
                                   images=[pb.Image(exr_blob=f"blobs/{out}")]))
     store.close()
     db = sqlite3.connect(tmp_path / "matoptd.sqlite3")

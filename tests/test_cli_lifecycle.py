@@ -66,7 +66,7 @@ def test_session_across_restart(own_daemon, tmp_path):
                   "--wait", "--truth", f"{KEY}=0.2,0.4,0.6")
     job = done.stdout.strip().splitlines()[0]
     status = as_json(d, "job", "status", job)
-    assert status["state"] == "SUCCEEDED" and status["iteration"] == 60
+    assert status["state"] == "JOB_STATE_SUCCEEDED" and status["iteration"] == 60
     errors = [r["errors"][0]["maxAbs"] for r in as_json(d, "job", "history", job)["iterations"]]
     assert errors[0] == pytest.approx(0.6, abs=1e-5) and errors[-1] < 0.05  # 0.8 -> 0.2
 
@@ -86,34 +86,34 @@ def test_session_across_restart(own_daemon, tmp_path):
                     "--from", job, "--from-which", "last")
     assert restart["spec"]["parameters"][0]["initialValue"] == pytest.approx(
         exported["parameters"][KEY], abs=1e-6)
-    wait_for(d, restart["name"], ("SUCCEEDED",))
+    wait_for(d, restart["name"], ("JOB_STATE_SUCCEEDED",))
 
     # A long job: watch a few events, pause, resume, then stop the daemon under it.
     long_job = matopt(d, "job", "start", scene, "--ref", str(ref), "--param", KEY,
                       "--init", f"{KEY}=0.8,0.8,0.8", "--min-error", "0",
                       "--iterations", "100000").stdout.strip()
-    wait_for(d, long_job, ("RUNNING",))
+    wait_for(d, long_job, ("JOB_STATE_RUNNING",))
     matopt(d, "job", "pause", long_job)
-    paused = wait_for(d, long_job, ("PAUSED",))
+    paused = wait_for(d, long_job, ("JOB_STATE_PAUSED",))
     matopt(d, "job", "resume", long_job)
-    wait_for(d, long_job, ("RUNNING",))
+    wait_for(d, long_job, ("JOB_STATE_RUNNING",))
     time.sleep(1.5)  # past a checkpoint (every 10 iterations)
     assert d.restart() and d.proc.poll() is None
 
     # Everything is still there after the restart.
     status = as_json(d, "job", "status", job)
-    assert status["state"] == "SUCCEEDED"
+    assert status["state"] == "JOB_STATE_SUCCEEDED"
     again = tmp_path / "export-again"
     matopt(d, "job", "export", job, "--out", str(again), "--which", "last")
     assert json.loads((again / "parameters.json").read_text()) == exported
     assert (again / "history.csv").read_text() == (out / "history.csv").read_text()
 
     interrupted = as_json(d, "job", "status", long_job)
-    assert interrupted["state"] == "INTERRUPTED"
+    assert interrupted["state"] == "JOB_STATE_INTERRUPTED"
     stopped_at = interrupted["iteration"]
     assert stopped_at > paused["iteration"]
     matopt(d, "job", "resume", long_job)
-    resumed = wait_for(d, long_job, ("RUNNING",))
+    resumed = wait_for(d, long_job, ("JOB_STATE_RUNNING",))
     assert resumed["resumedFrom"].startswith("checkpoint at iteration ")
     checkpoint = int(resumed["resumedFrom"].rsplit(" ", 1)[1])
     assert 0 < checkpoint <= stopped_at
@@ -121,16 +121,17 @@ def test_session_across_restart(own_daemon, tmp_path):
     watch = subprocess.Popen([sys.executable, "-m", "matopt.cli", "--server", d.address, "job",
                               "watch", long_job, "--json"], stdout=subprocess.PIPE, text=True)
     first = json.loads(watch.stdout.readline())
-    assert first["job"]["state"] == "RUNNING"
+    assert first["job"]["state"] == "JOB_STATE_RUNNING"
     assert "iteration" in json.loads(watch.stdout.readline())
     matopt(d, "job", "cancel", long_job)
     events = [json.loads(line) for line in watch.stdout]  # the stream ends on the final state
     assert watch.wait(timeout=60) != 0  # a cancelled job is not a success
-    assert events[-1]["job"]["state"] == "CANCELLED"
-    cancelled = wait_for(d, long_job, ("CANCELLED",))
+    assert events[-1]["job"]["state"] == "JOB_STATE_CANCELLED"
+    cancelled = wait_for(d, long_job, ("JOB_STATE_CANCELLED",))
     assert cancelled["iteration"] >= checkpoint
     listed = {j["name"]: j["state"] for j in as_json(d, "job", "list")["jobs"]}
-    assert listed == {job: "SUCCEEDED", restart["name"]: "SUCCEEDED", long_job: "CANCELLED"}
+    assert listed == {job: "JOB_STATE_SUCCEEDED", restart["name"]: "JOB_STATE_SUCCEEDED",
+                      long_job: "JOB_STATE_CANCELLED"}
 
 
 def test_errors_are_one_line_and_exit_nonzero(own_daemon, tmp_path):

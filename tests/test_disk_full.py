@@ -77,14 +77,14 @@ def test_a_full_disk_holds_jobs_and_recovers_by_itself(small_disk, tmp_path):
         assert err.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
         assert "disk is full" in err.value.details()
         held = bob.jobs.GetJob(pb.GetJobRequest(name=job.name))  # reads still answer
-        assert held.state == pb.RUNNING
+        assert held.state == pb.JOB_STATE_RUNNING
         time.sleep(2)
         assert bob.jobs.GetJob(pb.GetJobRequest(name=job.name)).iteration <= held.iteration + 1
 
         filler.unlink()
         wait_health(daemon.address, health_pb2.HealthCheckResponse.SERVING)
-        done = wait_state(bob, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
-        assert done.state == pb.SUCCEEDED, done
+        done = wait_state(bob, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
+        assert done.state == pb.JOB_STATE_SUCCEEDED, done
         history = bob.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
         assert [r.iteration for r in history] == list(range(200))
         assert alice.scenes.CreateScene(pb.CreateSceneRequest()).name.startswith("scenes/")

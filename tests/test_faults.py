@@ -95,21 +95,21 @@ def test_kill_9_of_a_worker_costs_no_job(two_users):
     poller = Poller(alice, a.name)
     wait_iteration(alice, a.name, 15)
     wait_iteration(bob, b.name, 15)
-    victim = wait_worker(alice, (pb.WORKER_BUSY, pb.WORKER_IDLE))
+    victim = wait_worker(alice, (pb.WORKER_STATE_BUSY, pb.WORKER_STATE_IDLE))
     os.kill(victim.pid, signal.SIGKILL)
 
-    done_a = wait_state(alice, a.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
-    done_b = wait_state(bob, b.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+    done_a = wait_state(alice, a.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
+    done_b = wait_state(bob, b.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
     poller.finish()
     assert poller.errors == [] and poller.calls > 20  # the API answered all along
-    assert (done_a.state, done_b.state) == (pb.SUCCEEDED, pb.SUCCEEDED), (done_a, done_b)
+    assert (done_a.state, done_b.state) == (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_SUCCEEDED), (done_a, done_b)
     notes = [n for j in (done_a, done_b) for n in j.notes if "SIGKILL" in n]
     assert notes and "goes on from its last checkpoint" in notes[0]
     assert any(j.resumed_from.startswith("checkpoint at iteration") for j in (done_a, done_b))
     for job, stubs in ((done_a, alice), (done_b, bob)):
         history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
         assert [r.iteration for r in history] == list(range(150))  # no gap, no repeat
-    after = wait_worker(alice, (pb.WORKER_IDLE,))
+    after = wait_worker(alice, (pb.WORKER_STATE_IDLE,))
     assert after.restarts == 1 and after.pid != victim.pid
     assert "SIGKILL" in after.last_exit
 
@@ -124,13 +124,13 @@ def test_a_job_over_the_memory_limit_fails_that_job_only(two_users):
     huge = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
         scene=scene.name, iterations=5, spp=1, references=[pb.Reference(blob=ref.exr_blob)],
         parameters=[pb.ParameterSpec(key="quad.bsdf.reflectance.data")])))
-    failed = wait_state(alice, huge.name, (pb.FAILED, pb.SUCCEEDED), timeout=300)
-    assert failed.state == pb.FAILED
+    failed = wait_state(alice, huge.name, (pb.JOB_STATE_FAILED, pb.JOB_STATE_SUCCEEDED), timeout=300)
+    assert failed.state == pb.JOB_STATE_FAILED
     assert "exceeded the worker memory limit of 450.0 MiB" in failed.error, failed.error
     assert "--worker-memory" in failed.error
-    done = wait_state(bob, small.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
-    assert done.state == pb.SUCCEEDED, done
-    after = wait_worker(bob, (pb.WORKER_IDLE,))
+    done = wait_state(bob, small.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done
+    after = wait_worker(bob, (pb.WORKER_STATE_IDLE,))
     assert after.memory_limit_bytes == 450 << 20 and "memory limit" in after.last_exit
 
 
@@ -138,16 +138,16 @@ def test_a_hung_iteration_is_cut_off_by_the_watchdog(two_users):
     daemon, alice, bob = two_users("--watchdog", "3")
     job = cornell_job(alice, 120)
     wait_iteration(alice, job.name, 20)
-    hung = wait_worker(alice, (pb.WORKER_BUSY, pb.WORKER_IDLE))
+    hung = wait_worker(alice, (pb.WORKER_STATE_BUSY, pb.WORKER_STATE_IDLE))
     os.kill(hung.pid, signal.SIGSTOP)  # alive, but answering nothing: a wedged renderer
     try:
-        done = wait_state(alice, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
+        done = wait_state(alice, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
     finally:
         try:
             os.kill(hung.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-    assert done.state == pb.SUCCEEDED, done
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done
     assert any("stopped answering" in n for n in done.notes), done.notes
     assert worker(alice).restarts == 1
 
@@ -162,7 +162,7 @@ def texture_scene(stubs: Stubs, size: int, seed: int) -> pb.Scene:
 
 def test_paused_jobs_give_their_memory_back(two_users):
     daemon, alice, bob = two_users("--workers", "1")
-    idle = wait_worker(alice, (pb.WORKER_IDLE,)).memory_bytes
+    idle = wait_worker(alice, (pb.WORKER_STATE_IDLE,)).memory_bytes
     key = "quad.bsdf.reflectance.data"
     jobs = []
     for seed in range(3):
@@ -178,9 +178,9 @@ def test_paused_jobs_give_their_memory_back(two_users):
     for job in jobs:
         alice.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
     for job in jobs:
-        wait_state(alice, job.name, (pb.PAUSED,))
+        wait_state(alice, job.name, (pb.JOB_STATE_PAUSED,))
     time.sleep(0.5)
-    paused = wait_worker(alice, (pb.WORKER_IDLE,))
+    paused = wait_worker(alice, (pb.WORKER_STATE_IDLE,))
     assert paused.job_count == 0
     # A job's 1024x1024 texture with Adam's state is ~70 MB; released, the worker is back
     # near where it started.
@@ -196,14 +196,14 @@ def test_a_paused_job_goes_on_with_the_losses_it_would_have_had(two_users):
     one thread, where Dr.Jit's sums are deterministic): the same losses as without a pause."""
     daemon, alice, bob = two_users("--workers", "2")
     plain = cornell_job(alice, 40, seed=7)
-    wait_state(alice, plain.name, (pb.SUCCEEDED,), timeout=300)
+    wait_state(alice, plain.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
     paused = alice.jobs.CreateJob(pb.CreateJobRequest(spec=plain.spec))
     wait_iteration(alice, paused.name, 12)
     alice.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
-    at = wait_state(alice, paused.name, (pb.PAUSED,)).iteration
+    at = wait_state(alice, paused.name, (pb.JOB_STATE_PAUSED,)).iteration
     assert 12 <= at < 40
     alice.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
-    wait_state(alice, paused.name, (pb.SUCCEEDED,), timeout=300)
+    wait_state(alice, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
     losses = [[r.loss for r in alice.jobs.GetJobHistory(pb.GetJobHistoryRequest(
         name=j.name)).iterations] for j in (plain, paused)]
     assert len(losses[0]) == len(losses[1]) == 40
@@ -214,7 +214,7 @@ def test_a_paused_job_goes_on_with_the_losses_it_would_have_had(two_users):
 def test_the_server_process_never_loads_the_renderer(two_users):
     daemon, alice, bob = two_users()
     job = cornell_job(alice, 5)
-    wait_state(alice, job.name, (pb.SUCCEEDED,))
+    wait_state(alice, job.name, (pb.JOB_STATE_SUCCEEDED,))
     maps = open(f"/proc/{daemon.proc.pid}/maps").read()
     assert "libdrjit" not in maps and "libmitsuba" not in maps and "mitsuba" not in maps
     w = worker(alice)

@@ -18,10 +18,10 @@ def refused(request) -> str:
 
 def test_sane_requests_pass():
     fields.check(pb.CreateJobRequest(
-        spec=pb.JobSpec(scene="scenes/abc", loss=pb.DUAL_BUFFER, schedule=pb.CONSTANT,
+        spec=pb.JobSpec(scene="scenes/abc", loss=pb.LOSS_DUAL_BUFFER, schedule=pb.SCHEDULE_CONSTANT,
                         references=[pb.Reference(blob="blobs/" + "a" * 64, filename="r.exr")],
                         parameters=[pb.ParameterSpec(key="red.reflectance.value")]),
-        request_id="r-1", initial_from_which=pb.LAST))
+        request_id="r-1", initial_from_which=pb.WHICH_LAST))
     fields.check(pb.CreateSceneRequest(overrides={"resx": "32"}, display_name="x" * 256))
 
 

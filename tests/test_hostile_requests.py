@@ -92,9 +92,9 @@ def test_resolution_20000_is_refused_up_front(users, bobs_job, cornell):
     alice = users[0]
     scene, ref = cornell
     err = rpc_error(alice.jobs.CreateJob, job_request(
-        scene, [pb.Reference(blob=ref.exr_blob, filename="ref.exr")], resolution=20000))
+        scene, [pb.Reference(blob=ref.exr_blob, filename="ref.exr")], film_height=20000))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
-    assert ("sensor 0 would render a 20000x20000 px film (from resolution 20000 and reference "
+    assert ("sensor 0 would render a 20000x20000 px film (from film_height 20000 and reference "
             "'ref.exr' (32x32 px)): at most 8,192 px on a side (matoptd --max-film-side)"
             ) == err.details()
 
@@ -104,7 +104,7 @@ def test_a_very_wide_reference_is_refused_for_the_film_it_would_need(users, bobs
     scene, _ = cornell
     sha = upload(alice, png_header_only(100000, 1))
     err = rpc_error(alice.jobs.CreateJob, job_request(
-        scene, [pb.Reference(blob=f"blobs/{sha}", filename="strip.png")], resolution=16))
+        scene, [pb.Reference(blob=f"blobs/{sha}", filename="strip.png")], film_height=16))
     assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "sensor 0 would render a 1600000x16 px film" in err.details()
     assert "reference 'strip.png' (100000x1 px)" in err.details()
@@ -131,7 +131,7 @@ def test_a_user_has_at_most_n_jobs_queued_or_running(users, bobs_job, cornell):
     assert err.details().startswith("user 'alice' has 2 queued or running jobs; the limit is 2 "
                                     "(matoptd --max-jobs-per-user)")
     alice.jobs.PauseJob(pb.PauseJobRequest(name=first.name))
-    wait_state(alice, first.name, (pb.PAUSED,))
+    wait_state(alice, first.name, (pb.JOB_STATE_PAUSED,))
     third = alice.jobs.CreateJob(small)  # a paused job holds no place
     err = rpc_error(alice.jobs.ResumeJob, pb.ResumeJobRequest(name=first.name))
     assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
@@ -139,7 +139,7 @@ def test_a_user_has_at_most_n_jobs_queued_or_running(users, bobs_job, cornell):
     for job in (first, second, third):
         alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
     for job in (first, second, third):
-        wait_state(alice, job.name, (pb.CANCELLED,))
+        wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED,))
 
 
 def test_a_users_scene_requests_in_progress_are_limited(users, bobs_job, cornell):
@@ -172,8 +172,8 @@ def test_a_users_scene_requests_in_progress_are_limited(users, bobs_job, cornell
 
 
 def test_the_other_users_job_ran_meanwhile(users, bobs_job):
-    done = wait_state(users[1], bobs_job.name, (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED))
-    assert done.state == pb.SUCCEEDED and done.iteration == 40, done
+    done = wait_state(users[1], bobs_job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED and done.iteration == 40, done
 
 
 # -- a cancel or a shutdown inside a long render ----------------------------------------------
@@ -181,7 +181,7 @@ def test_the_other_users_job_ran_meanwhile(users, bobs_job):
 def long_job(stubs: Stubs) -> pb.Job:
     """A job in the first of its iterations, each of which takes minutes."""
     job = cornell_job(stubs, 3, spp=LONG_SPP)
-    wait_state(stubs, job.name, (pb.RUNNING,), timeout=120)
+    wait_state(stubs, job.name, (pb.JOB_STATE_RUNNING,), timeout=120)
     time.sleep(1.0)  # the load returned; the first iteration is under way
     return job
 
@@ -202,7 +202,7 @@ def test_cancel_inside_a_long_iteration_stops_it_within_seconds(two_users):  # n
     bob_ref = bob.scenes.RenderScene(pb.RenderSceneRequest(name=bob_scene.name, spp=4)).images[0]
     job = long_job(alice)
     busy = worker(alice)
-    assert busy.state == pb.WORKER_BUSY and job.name in busy.jobs
+    assert busy.state == pb.WORKER_STATE_BUSY and job.name in busy.jobs
     # Bob asks for a job now: its reference check waits for the worker.
     bobs: list = []
     asking = threading.Thread(target=lambda: bobs.append(bob.jobs.CreateJob(pb.CreateJobRequest(
@@ -213,17 +213,17 @@ def test_cancel_inside_a_long_iteration_stops_it_within_seconds(two_users):  # n
 
     began = time.monotonic()
     alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-    cancelled = wait_state(alice, job.name, (pb.CANCELLED, pb.FAILED, pb.SUCCEEDED), timeout=60)
+    cancelled = wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_FAILED, pb.JOB_STATE_SUCCEEDED), timeout=60)
     took = time.monotonic() - began
-    assert cancelled.state == pb.CANCELLED, cancelled
+    assert cancelled.state == pb.JOB_STATE_CANCELLED, cancelled
     assert took < 5.0, f"the cancel took {took:.1f} s"
     assert any("cancelled during a long iteration" in n for n in cancelled.notes)
 
     asking.join(timeout=120)
     assert bobs, "bob's CreateJob did not return"
-    done = wait_state(bob, bobs[0].name, (pb.SUCCEEDED, pb.FAILED), timeout=120)
-    assert done.state == pb.SUCCEEDED, done
-    after = wait_worker(bob, (pb.WORKER_IDLE,))
+    done = wait_state(bob, bobs[0].name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=120)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done
+    after = wait_worker(bob, (pb.WORKER_STATE_IDLE,))
     assert after.restarts == 1 and after.pid != busy.pid
     assert "its job was cancelled during a long iteration" in after.last_exit
     assert not alive(busy.pid)
@@ -253,7 +253,7 @@ def test_sigterm_inside_a_long_iteration_exits_within_seconds(two_users):  # noq
     daemon.start()
     alice = Stubs(daemon.address, TOKENS["alice"])
     after = alice.jobs.GetJob(pb.GetJobRequest(name=job.name))
-    assert after.state == pb.INTERRUPTED, after
+    assert after.state == pb.JOB_STATE_INTERRUPTED, after
     # Marked by the shutdown itself, not found running by the next start.
     assert after.stop_reason.startswith("the daemon was shut down"), after.stop_reason
     alice.close()

@@ -44,9 +44,9 @@ def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[fl
         scene=scene.name, iterations=iterations, spp=spp, min_error=0,
         references=[pb.Reference(blob=i.exr_blob, filename=f"ref{i.sensor}.exr") for i in ref],
         parameters=selection, **spec)))
-    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=600)
-    assert done.state == pb.SUCCEEDED, done.error
-    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=600)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
     values = {}
     for v in last.parameters:
         if v.blob:
@@ -89,7 +89,7 @@ def test_principled_base_color_texture_from_black(stubs):
              "textures/albedo.png": png(texels)}
     key = "quad.bsdf.base_color.data"
     params, got, _ = recover(stubs, files, "quad.xml", {key: [0.0] * 48}, iterations=120)
-    assert params[key].kind == pb.TEXTURE
+    assert params[key].kind == pb.PARAMETER_KIND_TEXTURE
     rmse = np.sqrt(np.mean((got[key] - np.array(params[key].value)) ** 2))
     assert rmse < 0.04, rmse
 
@@ -119,7 +119,7 @@ def test_bitmap_texture_from_black(stubs, daemon, tmp_path):
     params, got, done = recover(stubs, files, "quad.xml",
                                 {"quad.bsdf.reflectance.data": [0.0] * 48}, iterations=120)
     key = "quad.bsdf.reflectance.data"
-    assert params[key].kind == pb.TEXTURE and list(params[key].shape) == [4, 4, 3]
+    assert params[key].kind == pb.PARAMETER_KIND_TEXTURE and list(params[key].shape) == [4, 4, 3]
     truth = np.array(params[key].value)
     rmse = np.sqrt(np.mean((got[key] - truth) ** 2))
     assert rmse < 0.03, (rmse, got[key] - truth)
@@ -178,7 +178,7 @@ def test_per_vertex_colours_from_black(stubs, daemon, tmp_path):
     xml, ply = colored_mesh()
     params, got, done = recover(stubs, {"mesh.xml": xml.encode(), "grid.ply": ply},
                                 "mesh.xml", {"grid.vertex_color": [0.0] * 27}, iterations=150)
-    assert params["grid.vertex_color"].kind == pb.VERTEX_ARRAY
+    assert params["grid.vertex_color"].kind == pb.PARAMETER_KIND_VERTEX_ARRAY
     truth = np.array(params["grid.vertex_color"].value)
     assert np.abs(got["grid.vertex_color"] - truth).max() < 0.05
     out = export(daemon, done.name, tmp_path).directory
@@ -202,7 +202,7 @@ def test_grid_volume_albedo_from_grey(stubs, daemon, tmp_path):
     params, got, done = recover(stubs, {"vol.xml": grid_volume().encode(),
                                         "albedo.vol": vol(truth)}, "vol.xml",
                                 {key: start}, iterations=200, spp=8, reference_spp=1024)
-    assert params[key].kind == pb.VOLUME_GRID and list(params[key].shape) == [4, 4, 4, 3]
+    assert params[key].kind == pb.PARAMETER_KIND_VOLUME_GRID and list(params[key].shape) == [4, 4, 4, 3]
     assert done.integrator == "prbvolpath"
     error = got[key] - truth.ravel()
     # The 8 interior voxels are seen only through the others and converge slowly; the bound is
@@ -238,10 +238,10 @@ def test_emitter_radiance_alone_and_jointly_with_a_wall(stubs):
             parameters=[pb.ParameterSpec(key=light, initial_value=[10, 10, 10])]
             + ([pb.ParameterSpec(key=red, initial_value=[0.3, 0.3, 0.3])]
                if red in selection else []))))
-        done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
-        assert done.state == pb.SUCCEEDED, done.error
+        done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
         last = {v.key: np.array(v.value) for v in stubs.jobs.GetJobResult(
-            pb.GetJobResultRequest(name=job.name, which=pb.LAST)).parameters}
+            pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST)).parameters}
         relative = np.abs(last[light] - truth[light]) / np.array(truth[light])
         assert relative.max() < 0.05, (selection, last[light])
         if red in selection:

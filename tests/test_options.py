@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
@@ -27,17 +28,17 @@ def run(stubs, scene, refs, iterations=80, **spec) -> tuple[pb.Job, list[float]]
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
         scene=scene.name, iterations=iterations, min_error=-1, references=refs,
         parameters=[pb.ParameterSpec(key=WALL, initial_value=[0.3, 0.3, 0.3])], **spec)))
-    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
-    assert done.state == pb.SUCCEEDED, done.error
-    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
     return done, list(last.parameters[0].value)
 
 
-@pytest.mark.parametrize("loss", [pb.MSE, pb.DUAL_BUFFER, pb.MAE, pb.MULTISCALE_MSE])
+@pytest.mark.parametrize("loss", [pb.LOSS_MSE, pb.LOSS_DUAL_BUFFER, pb.LOSS_MAE, pb.LOSS_MULTISCALE_MSE])
 def test_every_objective_recovers_the_wall(stubs, box, loss):
     scene, ref = box
     done, got = run(stubs, scene, [pb.Reference(blob=ref.exr_blob)], loss=loss)
-    assert got == pytest.approx(TRUTH, abs=0.05), pb.Loss.Name(loss)
+    assert got == pytest.approx(TRUTH, abs=0.05), enums.short_name(pb.Loss, loss)
 
 
 def test_brightness_independent_mse_recovers_colour_against_a_lit_background(stubs):
@@ -46,12 +47,12 @@ def test_brightness_independent_mse_recovers_colour_against_a_lit_background(stu
     two = create_scene(stubs, {"two.xml": TWO_CAMERAS.encode()}, "two.xml")
     refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=two.name, spp=128)).images
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=two.name, iterations=80, min_error=-1, loss=pb.BRIGHTNESS_INDEPENDENT_MSE,
+        scene=two.name, iterations=80, min_error=-1, loss=pb.LOSS_BRIGHTNESS_INDEPENDENT_MSE,
         references=[pb.Reference(blob=i.exr_blob) for i in refs],
         parameters=[pb.ParameterSpec(key="ball.bsdf.reflectance.value",
                                      initial_value=[0.5, 0.5, 0.5])])))
-    wait_state(stubs, job.name, (pb.SUCCEEDED,))
-    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+    wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
+    last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
     assert list(last.parameters[0].value) == pytest.approx([0.2, 0.6, 0.3], abs=0.06)
 
 
@@ -60,7 +61,7 @@ def test_brightness_independent_loss_is_safe_on_black_images(stubs, box):
     black = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1, parameters=[
         pb.ParameterValue(key="light.emitter.radiance.value", value=[0, 0, 0])])).images[0]
     done, got = run(stubs, scene, [pb.Reference(blob=black.exr_blob)], iterations=5,
-                    loss=pb.BRIGHTNESS_INDEPENDENT_MSE)
+                    loss=pb.LOSS_BRIGHTNESS_INDEPENDENT_MSE)
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=done.name)).iterations
     assert all(math.isfinite(r.loss) for r in history)
     assert all(math.isfinite(v) for v in got) and done.skipped_steps == 0
@@ -72,15 +73,15 @@ def test_step_per_sensor_and_accumulated_steps_both_work_on_two_cameras(stubs, b
     scene, ref = box
     two = create_scene(stubs, {"two.xml": TWO_CAMERAS.encode()}, "two.xml")
     refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=two.name, spp=128)).images
-    for mode in (pb.ACCUMULATE, pb.STEP_PER_SENSOR):
+    for mode in (pb.SENSOR_MODE_ACCUMULATE, pb.SENSOR_MODE_STEP_PER_SENSOR):
         job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
             scene=two.name, iterations=60, min_error=0, sensor_mode=mode,
             references=[pb.Reference(blob=i.exr_blob) for i in refs],
             parameters=[pb.ParameterSpec(key="ball.bsdf.reflectance.value",
                                          initial_value=[0.5, 0.5, 0.5])])))
-        done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED))
-        assert done.state == pb.SUCCEEDED and list(done.sensors_rendered) == [0, 1]
-        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.LAST))
+        done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert done.state == pb.JOB_STATE_SUCCEEDED and list(done.sensors_rendered) == [0, 1]
+        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
         assert list(last.parameters[0].value) == pytest.approx([0.2, 0.6, 0.3], abs=0.05)
 
 
@@ -105,9 +106,9 @@ def test_clamp_is_off_unless_asked(stubs):
             scene=scene.name, iterations=60, min_error=-1, clamp=clamp,
             references=[pb.Reference(blob=ref.exr_blob)],
             parameters=[pb.ParameterSpec(key=key, initial_value=[2, 2, 2])])))
-        wait_state(stubs, job.name, (pb.SUCCEEDED,))
+        wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,))
         results[clamp] = list(stubs.jobs.GetJobResult(pb.GetJobResultRequest(
-            name=job.name, which=pb.LAST)).parameters[0].value)
+            name=job.name, which=pb.WHICH_LAST)).parameters[0].value)
     assert results[False] == pytest.approx([4, 4, 4], rel=0.05)
     assert results[True] == pytest.approx([2, 2, 2], rel=1e-6)
 

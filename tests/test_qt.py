@@ -95,18 +95,18 @@ def cornell_reference(window: MainWindow, stubs, path: Path) -> Path:
 def test_a_late_control_reply_does_not_undo_a_newer_state(window):
     """ResumeJob answers QUEUED; when the worker runs the job before that reply reaches the
     GUI thread, the stream has already shown RUNNING, and the window keeps RUNNING."""
-    running = pb.Job(name="jobs/x", state=pb.RUNNING)
+    running = pb.Job(name="jobs/x", state=pb.JOB_STATE_RUNNING)
     running.update_time.FromNanoseconds(2_000)
-    queued = pb.Job(name="jobs/x", state=pb.QUEUED)
+    queued = pb.Job(name="jobs/x", state=pb.JOB_STATE_QUEUED)
     queued.update_time.FromNanoseconds(1_000)
     window._job_changed(running)
     window._job_changed(queued)
-    assert window.job.state == pb.RUNNING
+    assert window.job.state == pb.JOB_STATE_RUNNING
     assert window.view.resume_button.isEnabled() is False
-    paused = pb.Job(name="jobs/x", state=pb.PAUSED)
+    paused = pb.Job(name="jobs/x", state=pb.JOB_STATE_PAUSED)
     paused.update_time.FromNanoseconds(3_000)
     window._job_changed(paused)
-    assert window.job.state == pb.PAUSED and window.view.resume_button.isEnabled()
+    assert window.job.state == pb.JOB_STATE_PAUSED and window.view.resume_button.isEnabled()
 
 
 def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs, tmp_path,
@@ -164,9 +164,9 @@ def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs,
     assert list(by_key[ROUGHNESS].initial_value) == []  # unedited: the scene's value
     assert [(r.sensor, r.filename) for r in spec.references] == [(0, "ref_cam0.png"),
                                                                   (1, "ref_cam1.png")]
-    assert (spec.loss, spec.iterations, spec.spp, spec.min_error) == (pb.MSE, 12, 4, 0)
+    assert (spec.loss, spec.iterations, spec.spp, spec.min_error) == (pb.LOSS_MSE, 12, 4, 0)
 
-    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
     idle(qtbot, window)
     assert sorted(window.view.plot.points) == list(range(12))
@@ -182,7 +182,7 @@ def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs,
 
     # Last iteration instead of best; the other camera.
     window.set_which("last")
-    qtbot.waitUntil(lambda: window.result.which == pb.LAST, timeout=30000)
+    qtbot.waitUntil(lambda: window.result.which == pb.WHICH_LAST, timeout=30000)
     assert window.result.iteration == 11
     window.set_sensor(1)
     optimized = {i.sensor: i.png_blob for i in window.result.images if i.role == "optimized"}
@@ -211,9 +211,9 @@ def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs,
     assert uploads == []
     assert again.scene == spec.scene
     assert [r.blob for r in again.references] == [r.blob for r in spec.references]
-    assert (again.loss, again.iterations) == (pb.DUAL_BUFFER, 5)
+    assert (again.loss, again.iterations) == (pb.LOSS_DUAL_BUFFER, 5)
     assert {p.key: list(p.initial_value) for p in again.parameters}[BASE_COLOR] == [0.5] * 3
-    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
 
     # Continue from the result: its values become the start values of the next job.
@@ -234,7 +234,7 @@ def test_workflow_scene_file_to_results_export_and_restart(window, qtbot, stubs,
     assert started[BASE_COLOR] == pytest.approx(list(result[BASE_COLOR]), abs=1e-6)
     assert started[ROUGHNESS] == pytest.approx(list(result[ROUGHNESS]), abs=1e-6)
     assert window.continue_label.isHidden()
-    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     idle(qtbot, window)
 
 
@@ -245,8 +245,8 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     truth = [pb.ParameterValue(key=p.key, value=p.value) for p in stubs.scenes.ListSceneParameters(
         pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in WALLS]
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=25, min_error=0, seed=7, loss=pb.MAE,
-        sensor_mode=pb.STEP_PER_SENSOR, clamp=True, ground_truth=truth,
+        scene=scene.name, iterations=25, min_error=0, seed=7, loss=pb.LOSS_MAE,
+        sensor_mode=pb.SENSOR_MODE_STEP_PER_SENSOR, clamp=True, ground_truth=truth,
         references=[pb.Reference(blob=ref.exr_blob, filename="cli-ref.exr")],
         parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS])))
     qtbot.waitUntil(lambda: job.name in window.jobs.names(), timeout=15000)  # periodic refresh
@@ -263,7 +263,7 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     assert (settings.loss.currentText(), settings.sensor_mode.currentText(),
             settings.clamp.isChecked()) == ("mae", "step per sensor", True)
     assert "seed 7" in window.kept_label.text()
-    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     qtbot.waitUntil(lambda: sorted(window.view.plot.points) == list(range(25)), timeout=15000)
     # With ground truth, each wall's relative error is plotted against time beside the loss,
     # falling from the grey start (the plot draws it: the legend names both walls).
@@ -285,11 +285,11 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     qtbot.waitUntil(lambda: window.job.name != job.name, timeout=15000)
     spec = stubs.jobs.GetJob(pb.GetJobRequest(name=window.job.name)).spec
     assert (spec.iterations, spec.seed, spec.loss, spec.sensor_mode, spec.clamp) == (
-        3, 7, pb.MAE, pb.STEP_PER_SENSOR, True)
+        3, 7, pb.LOSS_MAE, pb.SENSOR_MODE_STEP_PER_SENSOR, True)
     assert [r.blob for r in spec.references] == [ref.exr_blob]
     assert {p.key: list(p.initial_value) for p in spec.parameters} == {k: [0.5] * 3
                                                                         for k in WALLS}
-    qtbot.waitUntil(lambda: window.job.state == pb.SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     idle(qtbot, window)
 
 
@@ -314,13 +314,13 @@ def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
     assert window.view.pause_button.isEnabled() and not window.view.resume_button.isEnabled()
 
     window.pause_job()
-    qtbot.waitUntil(lambda: window.job.state == pb.PAUSED, timeout=30000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_PAUSED, timeout=30000)
     assert window.view.resume_button.isEnabled() and not window.view.pause_button.isEnabled()
     window.resume_job()
-    qtbot.waitUntil(lambda: window.job.state == pb.RUNNING, timeout=30000)
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_RUNNING, timeout=30000)
     window.view.cancel_button.click()
-    qtbot.waitUntil(lambda: window.job.state == pb.CANCELLED, timeout=30000)
-    assert stubs.jobs.GetJob(pb.GetJobRequest(name=name)).state == pb.CANCELLED
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_CANCELLED, timeout=30000)
+    assert stubs.jobs.GetJob(pb.GetJobRequest(name=name)).state == pb.JOB_STATE_CANCELLED
     # A cancelled job keeps its results so far.
     qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
     assert "CANCELLED" in window.view.header.text()
@@ -384,12 +384,12 @@ def test_daemon_going_away_mid_job(qtbot, tmp_path, caplog, capfd):
         try:
             qtbot.waitUntil(lambda: window.connection.usable and window.banner.level != "error",
                             timeout=30000)
-            qtbot.waitUntil(lambda: window.job.state == pb.INTERRUPTED, timeout=30000)
+            qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_INTERRUPTED, timeout=30000)
             assert window.view.resume_button.isEnabled()
             window.resume_job()
-            qtbot.waitUntil(lambda: window.job.state == pb.RUNNING, timeout=30000)
+            qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_RUNNING, timeout=30000)
             window.cancel_job()
-            qtbot.waitUntil(lambda: window.job.state == pb.CANCELLED, timeout=30000)
+            qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_CANCELLED, timeout=30000)
             assert window.job.name == name
             idle(qtbot, window)
         finally:

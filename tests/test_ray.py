@@ -75,7 +75,7 @@ def wait_workers(stubs: Stubs, count: int, timeout: float = 180) -> list[pb.Work
     """Until exactly ``count`` workers are idle or busy."""
     deadline = time.time() + timeout
     while time.time() < deadline:
-        ready = [w for w in workers(stubs) if w.state in (pb.WORKER_IDLE, pb.WORKER_BUSY)]
+        ready = [w for w in workers(stubs) if w.state in (pb.WORKER_STATE_IDLE, pb.WORKER_STATE_BUSY)]
         if len(ready) == count and len(workers(stubs)) == count:
             return ready
         time.sleep(0.2)
@@ -93,7 +93,7 @@ def wall_job(stubs: Stubs, iterations: int) -> pb.Job:
 
 
 def assert_recovered(stubs: Stubs, name: str, tolerance: float = 0.1) -> None:
-    best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.BEST))
+    best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_BEST))
     for p in best.parameters:
         error = max(abs(a - b) for a, b in zip(p.value, TRUTH[p.key]))
         assert error < tolerance, (name, p.key, list(p.value))
@@ -120,10 +120,10 @@ def test_jobs_of_two_users_spread_across_nodes(service):
     while time.time() < deadline:
         states = [s.jobs.GetJob(pb.GetJobRequest(name=j.name)) for s, j in jobs]
         ran_on |= {j.worker for j in states if j.worker}
-        if all(j.state in (pb.SUCCEEDED, pb.FAILED) for j in states):
+        if all(j.state in (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED) for j in states):
             break
         time.sleep(0.1)
-    assert [j.state for j in states] == [pb.SUCCEEDED] * 4, states
+    assert [j.state for j in states] == [pb.JOB_STATE_SUCCEEDED] * 4, states
     assert len(ran_on) == 2, ran_on  # both machines' workers ran jobs
     for s, j in jobs:
         assert_recovered(s, j.name)
@@ -136,8 +136,8 @@ def test_a_node_that_leaves_sends_its_job_elsewhere_from_its_checkpoint(service,
     node = next(w.node for w in workers(alice) if w.name == running.worker)
     cluster.remove_node(next(n for n in cluster.worker_nodes if n.node_id == node))
 
-    done = wait_state(alice, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
-    assert done.state == pb.SUCCEEDED, done
+    done = wait_state(alice, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done
     assert done.resumed_from.startswith("checkpoint at iteration"), done.resumed_from
     assert any("left" in n and "last checkpoint" in n for n in done.notes), done.notes
     assert done.worker != running.worker
@@ -155,10 +155,10 @@ def test_with_no_worker_left_jobs_wait_queued_until_a_node_joins(service, cluste
         cluster.remove_node(n)
     wait_workers(bob, 0, timeout=60)
 
-    waiting = wait_state(bob, job.name, (pb.QUEUED,), timeout=30)
+    waiting = wait_state(bob, job.name, (pb.JOB_STATE_QUEUED,), timeout=30)
     assert any("no renderer worker is available" in n for n in waiting.notes), waiting.notes
     time.sleep(2)
-    assert bob.jobs.GetJob(pb.GetJobRequest(name=job.name)).state == pb.QUEUED
+    assert bob.jobs.GetJob(pb.GetJobRequest(name=job.name)).state == pb.JOB_STATE_QUEUED
     with pytest.raises(grpc.RpcError) as err:  # new work needs a worker to check it
         wall_job(alice, 10)
     assert err.value.code() == grpc.StatusCode.UNAVAILABLE
@@ -166,8 +166,8 @@ def test_with_no_worker_left_jobs_wait_queued_until_a_node_joins(service, cluste
 
     join_node(cluster)
     wait_workers(bob, 1)
-    done = wait_state(bob, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=300)
-    assert done.state == pb.SUCCEEDED, done
+    done = wait_state(bob, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done
     history = bob.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
     assert [r.iteration for r in history] == list(range(80))
     assert_recovered(bob, job.name)

@@ -64,10 +64,10 @@ def test_principled_object_recovers_color_roughness_transmission_and_eta(stubs):
         references=[pb.Reference(blob=ref.exr_blob, filename="ref.exr")],
         parameters=[pb.ParameterSpec(key=k, initial_value=start)
                     for k, (_, start, _) in PRINCIPLED_TRUTH.items()])))
-    done = wait_state(stubs, job.name, (pb.SUCCEEDED, pb.FAILED), timeout=600)
-    assert done.state == pb.SUCCEEDED, done.error
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=600)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
     assert done.integrator == "prb"
     last = {p.key: list(p.value) for p in stubs.jobs.GetJobResult(
-        pb.GetJobResultRequest(name=job.name, which=pb.LAST)).parameters}
+        pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST)).parameters}
     for key, (value, _, tolerance) in PRINCIPLED_TRUTH.items():
         assert last[key] == pytest.approx(value, abs=tolerance), key

@@ -46,7 +46,7 @@ def two_jobs(stubs):
 
     names = [start(True, 2), start(False, 4)]
     for name in names:
-        assert wait_state(stubs, name, (pb.SUCCEEDED, pb.FAILED), 120).state == pb.SUCCEEDED
+        assert wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), 120).state == pb.JOB_STATE_SUCCEEDED
     return names, truth
 
 

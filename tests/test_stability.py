@@ -25,8 +25,8 @@ def job(stubs, xml: str, key: str, start, iterations: int, ref_spp: int = 64, **
         parameters=[pb.ParameterSpec(key=key, initial_value=start,
                                      **({"learning_rate": spec.pop("lr")} if "lr" in spec
                                         else {}))], **spec)))
-    done = wait_state(stubs, created.name, (pb.SUCCEEDED, pb.FAILED))
-    assert done.state == pb.SUCCEEDED, done.error
+    done = wait_state(stubs, created.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=created.name)).iterations
     values = [list(r.parameters[0].value) for r in history]
     assert all(math.isfinite(v) for vs in values for v in vs), "a NaN/Inf parameter"
@@ -77,11 +77,11 @@ def test_one_spp_dual_buffer_is_not_fooled_by_noise(stubs):
                                                                       "resy": "32"}))
     ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=256)).images[0]
     created = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=120, min_error=0, spp=1, loss=pb.DUAL_BUFFER,
+        scene=scene.name, iterations=120, min_error=0, spp=1, loss=pb.LOSS_DUAL_BUFFER,
         references=[pb.Reference(blob=ref.exr_blob)],
         parameters=[pb.ParameterSpec(key="red.reflectance.value",
                                      initial_value=[0.2, 0.2, 0.2])])))
-    done = wait_state(stubs, created.name, (pb.SUCCEEDED, pb.FAILED))
+    done = wait_state(stubs, created.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=created.name)).iterations
     assert min(r.loss for r in history) < 0  # single estimates do go negative
     assert done.best_iteration >= 7  # a mean over 8 iterations, never a single draw

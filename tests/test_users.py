@@ -68,9 +68,9 @@ def test_users_see_and_control_only_their_own_jobs(shared):
     assert job.name not in [j.name for j in bob.jobs.ListJobs(pb.ListJobsRequest()).jobs]
     assert job.name in [j.name for j in alice.jobs.ListJobs(pb.ListJobsRequest()).jobs]
     # Bob's attempts changed nothing.
-    assert alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).state in (pb.QUEUED, pb.RUNNING)
+    assert alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING)
     alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
-    wait_state(alice, job.name, (pb.CANCELLED,))
+    wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED,))
     alice.close()
     bob.close()
 

@@ -28,14 +28,14 @@ SIGKILL_EXIT = "killed by SIGKILL during jobs/ab12"
 
 def busy_cpu_worker() -> pb.Worker:
     """Runs one of the caller's jobs and two of other users' jobs; restarted once."""
-    return pb.Worker(name="workers/0", state=pb.WORKER_BUSY, variant="llvm_ad_rgb",
+    return pb.Worker(name="workers/0", state=pb.WORKER_STATE_BUSY, variant="llvm_ad_rgb",
                      device="CPU: 2 threads (cores 0-1)", host="box", pid=1234,
                      jobs=["jobs/ab12"], job_count=3, restarts=1, last_exit=SIGKILL_EXIT,
                      memory_bytes=312 * MiB, memory_limit_bytes=8 * GiB, threads=2)
 
 
 def idle_cpu_worker() -> pb.Worker:
-    return pb.Worker(name="workers/1", state=pb.WORKER_IDLE, variant="llvm_ad_rgb",
+    return pb.Worker(name="workers/1", state=pb.WORKER_STATE_IDLE, variant="llvm_ad_rgb",
                      device="CPU: 4 threads (cores 2-5)", host="box", pid=1300,
                      memory_bytes=int(1.5 * GiB), memory_limit_bytes=8 * GiB, threads=4)
 
@@ -59,18 +59,18 @@ def test_one_busy_worker_reads_as_the_cli_prints_it():
 
 
 def test_other_users_jobs_are_counted_never_named():
-    worker = pb.Worker(name="workers/0", state=pb.WORKER_BUSY, device="NVIDIA H100", pid=7,
+    worker = pb.Worker(name="workers/0", state=pb.WORKER_STATE_BUSY, device="NVIDIA H100", pid=7,
                        host="gpu", job_count=2)
     [line] = wk.worker_lines([worker])
     assert "2 jobs" in line
     assert "yours" not in line and "jobs/" not in line
-    one = pb.Worker(name="workers/0", state=pb.WORKER_IDLE, pid=7, job_count=1)
+    one = pb.Worker(name="workers/0", state=pb.WORKER_STATE_IDLE, pid=7, job_count=1)
     assert wk.jobs_text(one) == "1 job"
     assert wk.jobs_text(pb.Worker(name="workers/0")) == "no jobs"
 
 
 def test_lines_are_aligned_in_columns():
-    restarting = pb.Worker(name="workers/10", state=pb.WORKER_RESTARTING, device="NVIDIA H100",
+    restarting = pb.Worker(name="workers/10", state=pb.WORKER_STATE_RESTARTING, device="NVIDIA H100",
                            host="gpu", restarts=3, last_exit="exceeded 8.0 GiB")
     lines = wk.worker_lines([busy_cpu_worker(), restarting], "llvm_ad_rgb")
     assert lines[0].index("CPU: 2 threads") == lines[1].index("NVIDIA H100")
@@ -79,7 +79,7 @@ def test_lines_are_aligned_in_columns():
 
 
 def test_a_restarting_worker_shows_no_stale_process_or_memory():
-    worker = pb.Worker(name="workers/1", state=pb.WORKER_RESTARTING, variant="cuda_ad_rgb",
+    worker = pb.Worker(name="workers/1", state=pb.WORKER_STATE_RESTARTING, variant="cuda_ad_rgb",
                        device="NVIDIA H100 (CUDA device 0)", host="gpu", pid=0,
                        memory_bytes=5 * GiB, memory_limit_bytes=40 * GiB, restarts=2,
                        last_exit="exited with status 1")
@@ -91,7 +91,7 @@ def test_a_restarting_worker_shows_no_stale_process_or_memory():
 
 
 def test_a_failed_worker_says_why_even_without_restarts():
-    worker = pb.Worker(name="workers/0", state=pb.WORKER_FAILED, device="NVIDIA H100",
+    worker = pb.Worker(name="workers/0", state=pb.WORKER_STATE_FAILED, device="NVIDIA H100",
                        last_exit="CUDA driver too old")
     cells = wk.worker_cells(worker)
     assert cells[1] == "failed"
@@ -117,12 +117,12 @@ def test_memory_figures():
 
 
 def test_summary_counts_each_state_in_words():
-    idle = pb.Worker(state=pb.WORKER_IDLE)
+    idle = pb.Worker(state=pb.WORKER_STATE_IDLE)
     assert wk.summary([busy_cpu_worker(), idle]) == "2 workers: 1 busy, 1 idle"
-    assert wk.summary([pb.Worker(state=pb.WORKER_FAILED), idle,
-                       pb.Worker(state=pb.WORKER_RESTARTING), idle]) \
+    assert wk.summary([pb.Worker(state=pb.WORKER_STATE_FAILED), idle,
+                       pb.Worker(state=pb.WORKER_STATE_RESTARTING), idle]) \
         == "4 workers: 2 idle, 1 restarting, 1 failed"
-    assert wk.summary([pb.Worker(state=pb.WORKER_STARTING)]) == "1 worker: 1 starting"
+    assert wk.summary([pb.Worker(state=pb.WORKER_STATE_STARTING)]) == "1 worker: 1 starting"
     assert wk.summary([]) == "no workers"
     assert wk.state_word(99) == "unknown"  # a state a newer daemon may add
 
@@ -169,7 +169,7 @@ def test_matopt_info_json_has_the_workers(monkeypatch):
     assert result.exit_code == 0, result.output
     [worker] = json.loads(result.output)["workers"]
     assert worker["name"] == "workers/0"
-    assert worker["state"] == "WORKER_BUSY"
+    assert worker["state"] == "WORKER_STATE_BUSY"
     assert worker["jobs"] == ["jobs/ab12"]
     assert int(worker["memoryBytes"]) == 312 * MiB
     assert worker["lastExit"] == SIGKILL_EXIT
@@ -224,7 +224,7 @@ def test_status_label_and_tooltip(qtbot):
     assert label.styleSheet() == ""
 
     restarting = idle_cpu_worker()
-    restarting.state, restarting.pid = pb.WORKER_RESTARTING, 0
+    restarting.state, restarting.pid = pb.WORKER_STATE_RESTARTING, 0
     label.set_info(server_info(busy_cpu_worker(), restarting))
     assert label.text() == "2 workers: 1 busy, 1 restarting"
     assert "color" in label.styleSheet()  # trouble stands out
@@ -307,7 +307,7 @@ def test_window_refreshes_workers_and_a_lost_daemon_is_one_banner(qtbot, tmp_pat
 
         # The probe refreshes the label without any action of the user.
         restarting = idle_cpu_worker()
-        restarting.state, restarting.pid, restarting.restarts = pb.WORKER_RESTARTING, 0, 1
+        restarting.state, restarting.pid, restarting.restarts = pb.WORKER_STATE_RESTARTING, 0, 1
         with daemon.lock:
             daemon.info = server_info(busy_cpu_worker(), restarting)
         qtbot.waitUntil(lambda: label.text() == "2 workers: 1 busy, 1 restarting", timeout=5000)

@@ -19,7 +19,7 @@ from typing import Callable, Iterable, Iterator, NamedTuple, Sequence
 
 import grpc
 
-from matopt_api import bundle
+from matopt_api import bundle, enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
@@ -28,7 +28,7 @@ CHUNK_BYTES = 1024 * 1024  # the API's chunk limit for blob streams
 PROBE_TIMEOUT_S = 5.0  # the first call: long enough for a remote daemon, short enough to wait out
 
 # States after which a job changes no more (INTERRUPTED may still be resumed, but no longer runs).
-TERMINAL_STATES = frozenset({pb.SUCCEEDED, pb.FAILED, pb.CANCELLED})
+TERMINAL_STATES = frozenset({pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED})
 
 
 class ClientError(Exception):
@@ -50,17 +50,17 @@ class Client:
 
     target: str
     channel: grpc.Channel
-    blobs: rpc.BlobsStub = field(init=False)
-    scenes: rpc.ScenesStub = field(init=False)
-    jobs: rpc.JobsStub = field(init=False)
-    server: rpc.ServerStub = field(init=False)
+    blobs: rpc.BlobServiceStub = field(init=False)
+    scenes: rpc.SceneServiceStub = field(init=False)
+    jobs: rpc.JobServiceStub = field(init=False)
+    server: rpc.ServerServiceStub = field(init=False)
     info: pb.ServerInfo | None = None  # from the first call, when connect() made one
 
     def __post_init__(self) -> None:
-        self.blobs = rpc.BlobsStub(self.channel)
-        self.scenes = rpc.ScenesStub(self.channel)
-        self.jobs = rpc.JobsStub(self.channel)
-        self.server = rpc.ServerStub(self.channel)
+        self.blobs = rpc.BlobServiceStub(self.channel)
+        self.scenes = rpc.SceneServiceStub(self.channel)
+        self.jobs = rpc.JobServiceStub(self.channel)
+        self.server = rpc.ServerServiceStub(self.channel)
 
     def close(self) -> None:
         self.channel.close()
@@ -391,16 +391,9 @@ def wait(client: Client, job_name: str,
     return last
 
 
-def enum_name(enum, value: int) -> str:
-    """An enum value's name, or its number when a newer daemon sends one this client lacks."""
-    try:
-        return enum.Name(value)
-    except ValueError:
-        return str(value)
-
-
 def state_name(state: int) -> str:
-    return enum_name(pb.State, state)
+    """"RUNNING" for JOB_STATE_RUNNING."""
+    return enums.short_name(pb.JobState, state)
 
 
 def list_all(method: Callable, request, field_name: str) -> list:

@@ -18,7 +18,7 @@ import numpy as np
 from matopt.client import Client, download_blob, resource_name, short_float, short_floats
 from matopt_api.v1 import matopt_pb2 as pb
 
-WHICH = {"best": pb.BEST, "last": pb.LAST}
+WHICH = {"best": pb.WHICH_BEST, "last": pb.WHICH_LAST}
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 

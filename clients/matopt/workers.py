@@ -14,16 +14,16 @@ from matopt_api.v1 import matopt_pb2 as pb
 # The word a user reads for each state; also the order the summary lists the states in
 # (what is working first, then what needs attention).
 STATE_WORDS: dict[int, str] = {
-    pb.WORKER_BUSY: "busy",
-    pb.WORKER_IDLE: "idle",
-    pb.WORKER_STARTING: "starting",
-    pb.WORKER_RESTARTING: "restarting",
-    pb.WORKER_FAILED: "failed",
+    pb.WORKER_STATE_BUSY: "busy",
+    pb.WORKER_STATE_IDLE: "idle",
+    pb.WORKER_STATE_STARTING: "starting",
+    pb.WORKER_STATE_RESTARTING: "restarting",
+    pb.WORKER_STATE_FAILED: "failed",
     pb.WORKER_STATE_UNSPECIFIED: "unknown",
 }
 
 # States that mean jobs on the worker are not being served as they should.
-TROUBLE_STATES = frozenset({pb.WORKER_RESTARTING, pb.WORKER_FAILED})
+TROUBLE_STATES = frozenset({pb.WORKER_STATE_RESTARTING, pb.WORKER_STATE_FAILED})
 
 
 def state_word(state: int) -> str:

@@ -123,7 +123,7 @@ def job_estimate(settings: api.JobSettings, films: dict[int, tuple[int, int]],
         header = references[ref.sensor]
         width, height = api.reference_film(settings.resolution or films[ref.sensor][1],
                                            header.width, header.height)
-        why = (f"resolution {settings.resolution}" if settings.resolution else
+        why = (f"film_height {settings.resolution}" if settings.resolution else
                f"the scene's film height {height}")
         why += f" and reference '{ref.name}' ({header.width}x{header.height} px)"
         out.renders.append(Render(ref.sensor, width, height, settings.spp, "spp", why,
@@ -161,7 +161,7 @@ def check(estimate: Estimate, limits: Limits) -> None:
                                   f"{_n(MITSUBA_MAX_SAMPLES)} in one call")
         if r.samples > limits.max_samples:
             raise ResourceExhausted(f"{what}; {_over('max_samples', limits)}: lower "
-                                    f"{r.spp_field} or the resolution")
+                                    f"{r.spp_field} or film_height")
     if estimate.film_bytes > limits.max_film_memory:
         raise ResourceExhausted(
             f"the films of {len(estimate.films)} sensor(s) take {format_size(estimate.film_bytes)} "

@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 from . import engine_api as api
@@ -85,7 +86,7 @@ def scene_input_from_json(text: str) -> api.SceneInput:
 
 
 def parameter_to_pb(p: api.ParameterInfo) -> pb.Parameter:
-    return pb.Parameter(key=p.key, kind=pb.ParameterKind.Value(p.kind.upper()), shape=p.shape,
+    return pb.Parameter(key=p.key, kind=enums.parse(pb.ParameterKind, p.kind), shape=p.shape,
                         value=p.value, min=p.lo, max=p.hi,
                         default_learning_rate=p.learning_rate, discontinuous=p.discontinuous)
 
@@ -131,10 +132,10 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
             truth[t.key] = v
     return api.JobSettings(
         scene=scene, references=references, parameters=parameters,
-        loss=pb.Loss.Name(spec.loss).lower(), iterations=spec.iterations,
+        loss=enums.short_name(pb.Loss, spec.loss).lower(), iterations=spec.iterations,
         min_error=spec.min_error, spp=spec.spp, seed=spec.seed,
-        cosine=spec.schedule != pb.CONSTANT, step_per_sensor=spec.sensor_mode == pb.STEP_PER_SENSOR,
-        clamp=spec.clamp, resolution=spec.resolution, truth=truth,
+        cosine=spec.schedule != pb.SCHEDULE_CONSTANT, step_per_sensor=spec.sensor_mode == pb.SENSOR_MODE_STEP_PER_SENSOR,
+        clamp=spec.clamp, resolution=spec.film_height, truth=truth,
         image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64,
         max_samples=max_samples)
 
@@ -179,7 +180,7 @@ def result_to_pb(job: str, r: api.Result, shapes: dict[str, list[int]], scene: p
     base = scene.main_file.rpartition("/")[0]
     new = {f"{base}/{path}" if base else path: put_blob(data)
            for path, data in r.scene_files.items()}
-    out = pb.JobResult(job=job, which=pb.Which.Value(r.which.upper()), iteration=r.iteration,
+    out = pb.JobResult(job=job, which=enums.parse(pb.Which, r.which), iteration=r.iteration,
                        loss=r.loss, parameters=values_to_pb(r.values, shapes, put_blob),
                        initial_parameters=values_to_pb(r.initial_values, shapes, put_blob),
                        images=[image_to_pb(i, put_blob) for i in r.images],

@@ -33,9 +33,8 @@ from pathlib import Path
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
 
-from . import __version__, admission, devices
+from . import __version__, admission, devices, reflection
 from .auth import Authenticator, load_tokens
 from .runner import Runner
 from .server import Service, add_services
@@ -173,9 +172,7 @@ async def serve(args: argparse.Namespace) -> None:
     names = add_services(server, Service(store, runner, Authenticator(tokens), limits))
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    reflection.enable_server_reflection(
-        [*names, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
-         reflection.SERVICE_NAME], server)
+    reflection.enable(server, [*names, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name])
     if args.tls_cert:
         creds = grpc.ssl_server_credentials([(args.tls_key.read_bytes(),
                                               args.tls_cert.read_bytes())])

@@ -26,6 +26,7 @@ from typing import Any, Callable
 
 from google.protobuf.timestamp_pb2 import Timestamp
 
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 from . import convert, engine_api as api
@@ -37,7 +38,7 @@ from .workers import CallFailed, Worker, WorkerLost
 
 log = logging.getLogger("matoptd.runner")
 
-FINAL = (pb.SUCCEEDED, pb.FAILED, pb.CANCELLED)
+FINAL = (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED)
 CHECKPOINT_ITERATIONS = 10  # a lost worker costs a job at most this many iterations...
 CHECKPOINT_SECONDS = 2.0    # ...or this much time, whichever is more
 CANCEL_GRACE_S = 3.0        # a cancel inside a long iteration stops the worker after this
@@ -52,6 +53,16 @@ def now() -> Timestamp:
     ts.GetCurrentTime()
     return ts
 
+
+def stop_note(reason: str, job: pb.Job) -> str:
+    """Why a job ended, in words: a job that stops early must say so, since "SUCCEEDED" alone
+    reads as converged."""
+    if reason == "min_error":
+        return (f"stopped at iteration {job.iteration} of {job.spec.iterations}: the loss "
+                f"{job.best_loss:.4g} fell below min_error {job.spec.min_error:g}")
+    if reason == "iterations":
+        return f"stopped after all {job.spec.iterations} iterations"
+    return f"stopped at iteration {job.iteration} of {job.spec.iterations}: {reason}"
 
 class RemoteEngine:
     """The engine interface of one worker for one action: ``engine.render(...)`` is a call in
@@ -172,14 +183,14 @@ class Runner:
         for lane in self._lanes:
             lane.join()
         with self.lock:
-            for job in self.store.list_jobs(None, 0, 1 << 30, (pb.RUNNING,)):
+            for job in self.store.list_jobs(None, 0, 1 << 30, (pb.JOB_STATE_RUNNING,)):
                 self._interrupt(job, "the daemon was shut down")
 
     def _recover(self) -> None:
         """After a restart: jobs that were running when the daemon stopped are INTERRUPTED
         (ResumeJob continues them); queued ones run again."""
-        for job in self.store.list_jobs(None, 0, 1 << 30, (pb.RUNNING, pb.QUEUED)):
-            if job.state == pb.RUNNING:
+        for job in self.store.list_jobs(None, 0, 1 << 30, (pb.JOB_STATE_RUNNING, pb.JOB_STATE_QUEUED)):
+            if job.state == pb.JOB_STATE_RUNNING:
                 self._interrupt(job, "the daemon stopped while the job ran")
             else:
                 self.scheduler.add_job(job.name, job.owner,
@@ -187,7 +198,7 @@ class Runner:
 
     def _interrupt(self, job: pb.Job, why: str) -> None:
         cp = self._checkpointed.get(job.name)
-        job.state = pb.INTERRUPTED
+        job.state = pb.JOB_STATE_INTERRUPTED
         job.stop_reason = (f"{why}; resume continues from the checkpoint at iteration {cp[0]}"
                            if cp else why)
         self._save(job)
@@ -218,30 +229,30 @@ class Runner:
     def pause(self, owner: str, name: str) -> pb.Job:
         with self.lock:
             job = self.store.get_job(name, owner)
-            if job.state in (pb.QUEUED, pb.RUNNING):
+            if job.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING):
                 if self.scheduler.pause(name):
-                    job.state = pb.PAUSED
+                    job.state = pb.JOB_STATE_PAUSED
                     self._save(job)
                 self.wake.notify_all()
-            elif job.state != pb.PAUSED:
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
+            elif job.state != pb.JOB_STATE_PAUSED:
+                raise FailedPrecondition(f"job '{name}' is {enums.short_name(pb.JobState, job.state)}: only a "
                                          "queued or running job can be paused")
             return job
 
     def resume(self, owner: str, name: str) -> pb.Job:
         with self.lock:
             job = self.store.get_job(name, owner)
-            if job.state in (pb.QUEUED, pb.RUNNING):
+            if job.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING):
                 self.scheduler.resume(name)  # a pending pause is withdrawn
                 return job
-            if job.state not in (pb.PAUSED, pb.INTERRUPTED):
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: only a "
+            if job.state not in (pb.JOB_STATE_PAUSED, pb.JOB_STATE_INTERRUPTED):
+                raise FailedPrecondition(f"job '{name}' is {enums.short_name(pb.JobState, job.state)}: only a "
                                          "paused or interrupted job can be resumed")
             if name in self.scheduler.jobs:
                 self.scheduler.resume(name)
             else:
                 self.scheduler.add_job(name, job.owner, started=self.store.has_checkpoint(name))
-            job.state, job.resumed_from = pb.QUEUED, "pending"  # the load says from where
+            job.state, job.resumed_from = pb.JOB_STATE_QUEUED, "pending"  # the load says from where
             self._save(job)
             self.wake.notify_all()
             return job
@@ -251,12 +262,12 @@ class Runner:
             job = self.store.get_job(name, owner)
             if job.state in FINAL:
                 raise FailedPrecondition(f"job '{name}' already ended "
-                                         f"({pb.State.Name(job.state)})")
+                                         f"({enums.short_name(pb.JobState, job.state)})")
             if name not in self.scheduler.jobs:  # paused or interrupted, not loaded
                 self.scheduler.add_job(name, job.owner, paused=True,
                                        started=self.store.has_checkpoint(name))
             if self.scheduler.cancel(name):
-                job.state, job.stop_reason = pb.CANCELLED, "cancelled"
+                job.state, job.stop_reason = pb.JOB_STATE_CANCELLED, "cancelled"
                 self._save(job)
             else:
                 self._cancelled_at[name] = time.monotonic()
@@ -267,17 +278,17 @@ class Runner:
         with self.lock:
             job = self.store.get_job(name, owner)
             sched = self.scheduler.jobs.get(name)
-            if job.state == pb.RUNNING or (sched and (sched.busy or sched.worker)):
-                raise FailedPrecondition(f"job '{name}' is {pb.State.Name(job.state)}: cancel "
+            if job.state == pb.JOB_STATE_RUNNING or (sched and (sched.busy or sched.worker)):
+                raise FailedPrecondition(f"job '{name}' is {enums.short_name(pb.JobState, job.state)}: cancel "
                                          "it before deleting it")
             self.scheduler.remove(name)
             self.store.delete_job(name)
 
     def worker_listing(self, user: str) -> list[pb.Worker]:
         """The workers as GetServerInfo shows them: the caller's own jobs by name."""
-        states = {"starting": pb.WORKER_STARTING, "idle": pb.WORKER_IDLE,
-                  "busy": pb.WORKER_BUSY, "restarting": pb.WORKER_RESTARTING,
-                  "failed": pb.WORKER_FAILED}
+        states = {"starting": pb.WORKER_STATE_STARTING, "idle": pb.WORKER_STATE_IDLE,
+                  "busy": pb.WORKER_STATE_BUSY, "restarting": pb.WORKER_STATE_RESTARTING,
+                  "failed": pb.WORKER_STATE_FAILED}
         out = []
         with self.lock:
             for w in self.workers.values():
@@ -421,7 +432,7 @@ class Runner:
             elif action.kind in ("evict", "park"):
                 self._unload(engine, job, action)
             elif action.kind == "cancel":
-                self._finish(engine, job, action, pb.CANCELLED, "cancelled", cancelled=True)
+                self._finish(engine, job, action, pb.JOB_STATE_CANCELLED, "cancelled", cancelled=True)
         except UserError as exc:
             self._fail(engine, job, action, str(exc))
 
@@ -436,8 +447,8 @@ class Runner:
         self._checkpointed[job.name] = (started.iteration, -math.inf)
         with self.lock:
             job = self.store.get_job(job.name)
-            if job.state == pb.QUEUED:
-                job.state = pb.RUNNING
+            if job.state == pb.JOB_STATE_QUEUED:
+                job.state = pb.JOB_STATE_RUNNING
             job.integrator, job.integrator_reason = started.integrator, started.integrator_reason
             job.worker = action.worker
             job.sensors_rendered[:] = started.sensors
@@ -461,7 +472,7 @@ class Runner:
             self.store.put_job(job)
         self._publish(job.name, [pb.JobEvent(iteration=r) for r in records])
         if progress.done:
-            self._finish(engine, job, action, pb.SUCCEEDED, progress.stop_reason,
+            self._finish(engine, job, action, pb.JOB_STATE_SUCCEEDED, progress.stop_reason,
                          iterations=len(records))
             return
         at, when = self._checkpointed.get(job.name, (0, 0.0))
@@ -480,7 +491,7 @@ class Runner:
         with self.lock:
             if action.kind == "park":
                 job = self.store.get_job(job.name)
-                job.state = pb.PAUSED
+                job.state = pb.JOB_STATE_PAUSED
                 self._save(job)
             self.scheduler.done(action)
             self.wake.notify_all()
@@ -498,6 +509,7 @@ class Runner:
         with self.lock:
             job = self.store.get_job(job.name)
             job.notes.extend(finished.notes)
+            job.notes.append(stop_note(reason, job))
             convert.counters_to_job(job, finished.counters)
             job.state, job.stop_reason = state, reason
             self._save(job)
@@ -518,7 +530,7 @@ class Runner:
             except NotFound:  # deleted meanwhile
                 pass
             else:
-                job.state, job.error, job.stop_reason = pb.FAILED, message, "failed"
+                job.state, job.error, job.stop_reason = pb.JOB_STATE_FAILED, message, "failed"
                 self._save(job)
             self._forget(job.name)
             self.scheduler.remove(job.name)
@@ -551,7 +563,7 @@ class Runner:
                 if job.control == "pause" and job.worker is None and not job.busy:
                     self.scheduler.pause(job.name)
                     stored = self.store.get_job(job.name)
-                    stored.state = pb.PAUSED
+                    stored.state = pb.JOB_STATE_PAUSED
                     self._save(stored)
             self.scheduler.held = False
             self.wake.notify_all()
@@ -622,7 +634,7 @@ class Runner:
                 with self.lock:
                     self.scheduler.remove(running.name)
                     job = self.store.get_job(running.name)
-                    job.state, job.stop_reason = pb.CANCELLED, "cancelled"
+                    job.state, job.stop_reason = pb.JOB_STATE_CANCELLED, "cancelled"
                     job.notes.append("cancelled during a long iteration: its renderer process "
                                      "was stopped, so the job has no results")
                     self._save(job)
@@ -649,8 +661,8 @@ class Runner:
                 return
             job.notes.append(note)
             job.resumed_from = "pending"
-            if job.state == pb.RUNNING and not self.stopping:  # it waits for a worker again
-                job.state = pb.QUEUED  # (on shutdown it stays RUNNING, to be INTERRUPTED)
+            if job.state == pb.JOB_STATE_RUNNING and not self.stopping:  # it waits for a worker again
+                job.state = pb.JOB_STATE_QUEUED  # (on shutdown it stays RUNNING, to be INTERRUPTED)
             self._save(job)
 
     def _remove(self, w: Worker) -> None:

@@ -9,6 +9,7 @@ key or value; anything else is INTERNAL, logged, and confined to that one reques
 from __future__ import annotations
 
 import asyncio
+import base64
 import difflib
 import functools
 import logging
@@ -16,9 +17,11 @@ import math
 import uuid
 
 import grpc
+from google.protobuf import empty_pb2
 from google.protobuf.message import Message
 
 from matoptd import __version__
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
@@ -31,9 +34,10 @@ from .store import CHUNK, Store
 log = logging.getLogger("matoptd.server")
 
 DEFAULT_ITERATIONS = 100
-DEFAULT_MIN_ERROR = 0.001
+DEFAULT_MIN_ERROR = 0.0  # off: a fixed threshold ends dim scenes before they converge
 DEFAULT_SPP = 16  # see parameters.DEFAULT_LEARNING_RATE: the same measurement
 DEFAULT_PAGE, MAX_PAGE = 50, 1000
+HISTORY_PAGE, MAX_HISTORY_PAGE = 1000, 10000
 
 
 async def _guard(context, fn):
@@ -98,18 +102,29 @@ async def _anext(gen):
         return _END
 
 
-def _page(token: str, size: int) -> tuple[int, int]:
+def _page(token: str, size: int, default: int = DEFAULT_PAGE,
+          most: int = MAX_PAGE) -> tuple[int, int]:
+    """(offset, limit) of a page. Tokens are opaque to clients (an offset in base64 behind a
+    tag), so that the daemon may change what they hold without breaking anyone."""
     if size < 0:
         raise InvalidArgument(f"page_size must be >= 0, got {size}")
-    # Tokens are the offsets _next_token wrote: decimal digits that SQLite can take.
-    if token and not (token.isascii() and token.isdigit() and len(token) <= 18):
-        raise InvalidArgument(f"invalid page_token '{token}': pass the next_page_token of "
-                              "the previous page, or nothing for the first")
-    return int(token or 0), min(size or DEFAULT_PAGE, MAX_PAGE)
+    offset = 0
+    if token:
+        try:
+            tag, _, digits = base64.urlsafe_b64decode(token.encode("ascii")).decode().partition(":")
+            offset = int(digits) if tag == "o" and digits.isdigit() and len(digits) <= 18 else -1
+        except (ValueError, UnicodeError):
+            offset = -1
+        if offset < 0:
+            raise InvalidArgument(f"invalid page_token '{token}': pass the next_page_token of "
+                                  "the previous page unchanged, or nothing for the first")
+    return offset, min(size or default, most)
 
 
 def _next_token(offset: int, limit: int, got: int) -> str:
-    return str(offset + limit) if got == limit else ""
+    if got < limit:
+        return ""
+    return base64.urlsafe_b64encode(f"o:{offset + limit}".encode()).decode()
 
 
 def _name(prefix: str, name: str) -> str:
@@ -134,7 +149,7 @@ class Service:
 
 # -- blobs -----------------------------------------------------------------------------------
 
-class Blobs(rpc.BlobsServicer):
+class BlobService(rpc.BlobServiceServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.auth = svc.store, svc.auth
 
@@ -186,12 +201,12 @@ class Blobs(rpc.BlobsServicer):
     @unary
     async def DeleteBlob(self, request, context, user):
         self.store.delete_blob(user, _name("blobs", request.name))
-        return pb.DeleteBlobResponse()
+        return empty_pb2.Empty()
 
 
 # -- scenes ----------------------------------------------------------------------------------
 
-class Scenes(rpc.ScenesServicer):
+class SceneService(rpc.SceneServiceServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
         self.limits, self.tasks = svc.limits, svc.tasks
@@ -259,7 +274,7 @@ class Scenes(rpc.ScenesServicer):
                 f"({', '.join(using[:3])}{', ...' if len(using) > 3 else ''}): a paused or "
                 "interrupted job reloads its scene to resume; cancel or delete them first")
         self.store.delete_scene(user, name)
-        return pb.DeleteSceneResponse()
+        return empty_pb2.Empty()
 
     @unary
     async def ListSceneParameters(self, request, context, user):
@@ -320,17 +335,14 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
         raise InvalidArgument(f"spp must be >= 1, got {spec.spp}")
     if spec.HasField("min_error") and not math.isfinite(spec.min_error):
         raise InvalidArgument(f"min_error must be finite, got {spec.min_error}")
-    if spec.loss == pb.MEAN_BIAS_ERROR:
-        raise InvalidArgument("mean_bias_error is a diagnostic, not an objective: minimizing "
-                              "it drives the render to black; use mse, mae or dual_buffer")
-    for field in ("resolution", "image_error_every", "image_error_spp"):
+    for field in ("film_height", "image_error_every", "image_error_spp"):
         if getattr(spec, field) < 0:
             raise InvalidArgument(f"{field} must be >= 0, got {getattr(spec, field)}")
     out.iterations = spec.iterations if spec.HasField("iterations") else DEFAULT_ITERATIONS
     out.spp = spec.spp if spec.HasField("spp") else DEFAULT_SPP
     out.min_error = spec.min_error if spec.HasField("min_error") else DEFAULT_MIN_ERROR
-    out.loss = spec.loss or pb.MSE
-    out.schedule = spec.schedule or pb.COSINE
+    out.loss = spec.loss or pb.LOSS_MSE
+    out.schedule = spec.schedule or pb.SCHEDULE_COSINE
     default_lr = spec.learning_rate if spec.HasField("learning_rate") else None
     if default_lr is not None and not (math.isfinite(default_lr) and default_lr > 0):
         raise InvalidArgument(f"learning_rate must be > 0, got {default_lr}")
@@ -399,7 +411,7 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
     return out
 
 
-class Jobs(rpc.JobsServicer):
+class JobService(rpc.JobServiceServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
         self.limits, self.tasks = svc.limits, svc.tasks
@@ -428,7 +440,7 @@ class Jobs(rpc.JobsServicer):
         with self.tasks.hold(user):
             await self.runner.task(lambda engine: engine.check_references(settings.references))
         self._admit_another(user)  # again: other requests of this user may have come first
-        job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
+        job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.JOB_STATE_QUEUED,
                      owner=user, best_iteration=-1)
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
@@ -440,7 +452,7 @@ class Jobs(rpc.JobsServicer):
     def _admit_another(self, user: str) -> None:
         """Refuses a user's job beyond --max-jobs-per-user queued or running ones."""
         active = self.store.list_jobs(user, 0, self.limits.max_jobs_per_user,
-                                      (pb.QUEUED, pb.RUNNING))
+                                      (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING))
         admission.check_jobs(user, len(active), self.limits)
 
     def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec) -> None:
@@ -448,10 +460,10 @@ class Jobs(rpc.JobsServicer):
         job's result left them (values inline, large ones by blob: nothing is re-uploaded)."""
         source = _name("jobs", request.initial_from_job)
         self.store.get_job(source, user)
-        which = request.initial_from_which or pb.BEST
+        which = request.initial_from_which or pb.WHICH_BEST
         result = self.store.result(source, which)
         if result is None:
-            raise FailedPrecondition(f"job '{source}' has no {pb.Which.Name(which)} result to "
+            raise FailedPrecondition(f"job '{source}' has no {enums.short_name(pb.Which, which)} result to "
                                      "start from")
         found = {v.key: v for v in result.parameters}
         for p in spec.parameters:
@@ -477,7 +489,7 @@ class Jobs(rpc.JobsServicer):
     @unary
     async def DeleteJob(self, request, context, user):
         self.runner.delete(user, _name("jobs", request.name))
-        return pb.DeleteJobResponse()
+        return empty_pb2.Empty()
 
     @unary
     async def PauseJob(self, request, context, user):
@@ -486,7 +498,7 @@ class Jobs(rpc.JobsServicer):
     @unary
     async def ResumeJob(self, request, context, user):
         name = _name("jobs", request.name)
-        if self.store.get_job(name, user).state in (pb.PAUSED, pb.INTERRUPTED):
+        if self.store.get_job(name, user).state in (pb.JOB_STATE_PAUSED, pb.JOB_STATE_INTERRUPTED):
             self._admit_another(user)  # it queues again
         return self.runner.resume(user, name)
 
@@ -516,11 +528,11 @@ class Jobs(rpc.JobsServicer):
     async def GetJobResult(self, request, context, user):
         name = _name("jobs", request.name)
         job = self.store.get_job(name, user)
-        which = request.which or pb.BEST
+        which = request.which or pb.WHICH_BEST
         result = self.store.result(name, which)
         if result is None:
-            raise FailedPrecondition(f"job '{name}' has no {pb.Which.Name(which)} result "
-                                     f"({pb.State.Name(job.state)}): results exist once a job "
+            raise FailedPrecondition(f"job '{name}' has no {enums.short_name(pb.Which, which)} result "
+                                     f"({enums.short_name(pb.JobState, job.state)}): results exist once a job "
                                      f"succeeded or was cancelled after its first iteration")
         return result
 
@@ -528,12 +540,16 @@ class Jobs(rpc.JobsServicer):
     async def GetJobHistory(self, request, context, user):
         name = _name("jobs", request.name)
         self.store.get_job(name, user)
-        return pb.GetJobHistoryResponse(iterations=self.store.history(name))
+        offset, limit = _page(request.page_token, request.page_size, HISTORY_PAGE,
+                              MAX_HISTORY_PAGE)
+        found = self.store.history(name, offset, limit)
+        return pb.GetJobHistoryResponse(iterations=found,
+                                        next_page_token=_next_token(offset, limit, len(found)))
 
 
 # -- server ----------------------------------------------------------------------------------
 
-class Server(rpc.ServerServicer):
+class ServerService(rpc.ServerServiceServicer):
     def __init__(self, svc: Service) -> None:
         self.runner, self.auth = svc.runner, svc.auth
 
@@ -543,8 +559,8 @@ class Server(rpc.ServerServicer):
         first = next((w for w in workers if w.variant), pb.Worker())
         return pb.ServerInfo(
             version=__version__, variant=first.variant, device=first.device, user=user,
-            workers=workers, losses=[pb.Loss.Name(v).lower() for v in pb.Loss.values()
-                               if v not in (pb.LOSS_UNSPECIFIED, pb.MEAN_BIAS_ERROR)],
+            workers=workers, losses=enums.short_names(pb.Loss), schedules=enums.short_names(pb.Schedule),
+            sensor_modes=enums.short_names(pb.SensorMode),
             integrators=["prb", "prbvolpath", "prb_projective", "direct_projective"],
             capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
                           "checkpoint-resume", "watch", "render", "multi-user", "restart",
@@ -554,9 +570,9 @@ class Server(rpc.ServerServicer):
 
 def add_services(server: grpc.aio.Server, svc: Service) -> list[str]:
     """Registers the matopt services; returns their full names (for health and reflection)."""
-    rpc.add_BlobsServicer_to_server(Blobs(svc), server)
-    rpc.add_ScenesServicer_to_server(Scenes(svc), server)
-    rpc.add_JobsServicer_to_server(Jobs(svc), server)
-    rpc.add_ServerServicer_to_server(Server(svc), server)
+    rpc.add_BlobServiceServicer_to_server(BlobService(svc), server)
+    rpc.add_SceneServiceServicer_to_server(SceneService(svc), server)
+    rpc.add_JobServiceServicer_to_server(JobService(svc), server)
+    rpc.add_ServerServiceServicer_to_server(ServerService(svc), server)
     return [pb.DESCRIPTOR.services_by_name[n].full_name
-            for n in ("Blobs", "Scenes", "Jobs", "Server")]
+            for n in ("BlobService", "SceneService", "JobService", "ServerService")]

@@ -430,8 +430,10 @@ class Store:
             self._db.execute("INSERT OR REPLACE INTO iterations VALUES (?, ?, ?)",
                              (job, record.iteration, record.SerializeToString()))
 
-    def history(self, job: str) -> list[pb.IterationRecord]:
-        rows = self._query("SELECT record FROM iterations WHERE job=? ORDER BY iteration", (job,))
+    def history(self, job: str, offset: int = 0, limit: int = -1) -> list[pb.IterationRecord]:
+        """Records in iteration order; a page of them with ``offset`` and ``limit``."""
+        rows = self._query("SELECT record FROM iterations WHERE job=? ORDER BY iteration "
+                           "LIMIT ? OFFSET ?", (job, limit, offset))
         return [pb.IterationRecord.FromString(r[0]) for r in rows]
 
     def truncate_history(self, job: str, keep_below: int) -> None:

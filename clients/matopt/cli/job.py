@@ -16,14 +16,15 @@ from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, V
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
 from matopt.export import WHICH, export_job
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-LOSSES = {"mse": pb.MSE, "dual_buffer": pb.DUAL_BUFFER, "mae": pb.MAE,
-          "brightness_independent_mse": pb.BRIGHTNESS_INDEPENDENT_MSE,
-          "multiscale_mse": pb.MULTISCALE_MSE}
-SENSOR_MODES = {"accumulate": pb.ACCUMULATE, "step_per_sensor": pb.STEP_PER_SENSOR}
-SCHEDULES = {"cosine": pb.COSINE, "constant": pb.CONSTANT}
-STATES = [n for n in pb.State.keys() if n != "STATE_UNSPECIFIED"]
+LOSSES = {"mse": pb.LOSS_MSE, "dual_buffer": pb.LOSS_DUAL_BUFFER, "mae": pb.LOSS_MAE,
+          "brightness_independent_mse": pb.LOSS_BRIGHTNESS_INDEPENDENT_MSE,
+          "multiscale_mse": pb.LOSS_MULTISCALE_MSE}
+SENSOR_MODES = {"accumulate": pb.SENSOR_MODE_ACCUMULATE, "step_per_sensor": pb.SENSOR_MODE_STEP_PER_SENSOR}
+SCHEDULES = {"cosine": pb.SCHEDULE_COSINE, "constant": pb.SCHEDULE_CONSTANT}
+STATES = enums.short_names(pb.JobState)
 
 
 @click.group(cls=Group)
@@ -134,7 +135,7 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
              "schedule": SCHEDULES[schedule.lower()] if schedule else None,
              "learning_rate": next((rate for key, rate in rates if key is None), None),
              "sensor_mode": SENSOR_MODES[sensor_mode.lower()] if sensor_mode else None,
-             "clamp": clamp or None, "resolution": resolution,
+             "clamp": clamp or None, "film_height": resolution,
              "image_error_every": image_error_every}
     spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
                       **{k: v for k, v in given.items() if v is not None})
@@ -175,7 +176,7 @@ def wait_with_progress(client: mc.Client, name: str) -> pb.Job:
 def list_jobs(state: str | None, as_json: bool) -> None:
     """List your jobs."""
     client = connected()
-    request = pb.ListJobsRequest(state=pb.State.Value(state.upper()) if state else 0)
+    request = pb.ListJobsRequest(state=enums.parse(pb.JobState, state) if state else 0)
     jobs = mc.list_all(client.jobs.ListJobs, request, "jobs")
     if as_json:
         emit_json(pb.ListJobsResponse(jobs=jobs))
@@ -212,7 +213,7 @@ def status(name: str, as_json: bool) -> None:
         "elapsed": f"{j.elapsed_seconds:.1f} s",
         "parameters": ", ".join(p.key for p in spec.parameters),
         "references": ", ".join(r.filename or r.blob for r in spec.references),
-        "loss function": mc.enum_name(pb.Loss, spec.loss),
+        "loss function": enums.short_name(pb.Loss, spec.loss),
         "spp": spec.spp,
         "min error": number(spec.min_error),
         "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),

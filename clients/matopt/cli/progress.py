@@ -135,14 +135,14 @@ def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]
 def outcome(job: pb.Job) -> None:
     """Reports how the job ended; raises (exit status 1) unless it SUCCEEDED."""
     state = mc.state_name(job.state)
-    if job.state == pb.SUCCEEDED:
+    if job.state == pb.JOB_STATE_SUCCEEDED:
         reason = f" ({job.stop_reason})" if job.stop_reason else ""
         lowest = f"; best loss {best(job)}" if best(job) else ""
         note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}{lowest}")
         return
-    if job.state == pb.FAILED:
+    if job.state == pb.JOB_STATE_FAILED:
         raise click.ClickException(f"job '{job.name}' FAILED: {job.error or 'no reason given'}")
-    if job.state == pb.CANCELLED:
+    if job.state == pb.JOB_STATE_CANCELLED:
         raise click.ClickException(f"job '{job.name}' was cancelled")
-    hint = f" ('matopt job resume {job.name}' continues it)" if job.state == pb.INTERRUPTED else ""
+    hint = f" ('matopt job resume {job.name}' continues it)" if job.state == pb.JOB_STATE_INTERRUPTED else ""
     raise click.ClickException(f"job '{job.name}' stopped in state {state}{hint}")

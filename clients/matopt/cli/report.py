@@ -28,6 +28,7 @@ from matopt import client as mc
 from matopt.cli.output import emit_json, note
 from matopt.cli.params import JOB
 from matopt.cli.session import connected
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 PLOT_HINT = "plots need matplotlib: install matopt[plot] (pip install 'matopt[plot]')"
@@ -93,8 +94,8 @@ def record_row(record: pb.IterationRecord, truth: dict[str, list[float]]) -> Row
 def default_label(job: pb.Job) -> str:
     """The job's id and the settings that usually tell two compared methods apart."""
     spec = job.spec
-    loss = mc.enum_name(pb.Loss, spec.loss).lower() if spec.loss else "mse"
-    schedule = mc.enum_name(pb.Schedule, spec.schedule).lower() if spec.schedule else "cosine"
+    loss = enums.short_name(pb.Loss, spec.loss).lower() if spec.loss else "mse"
+    schedule = enums.short_name(pb.Schedule, spec.schedule).lower() if spec.schedule else "cosine"
     return f"{job.name.removeprefix('jobs/')} ({loss}, {spec.spp} spp, {schedule})"
 
 

@@ -13,6 +13,7 @@ from matopt.cli.output import (emit_json, fields, json_option, message_dict, not
 from matopt.cli.params import SCENE, Assignment, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 
@@ -127,7 +128,7 @@ def params(name: str, as_json: bool) -> None:
         return
     noted = any(p.discontinuous for p in parameters)  # gradients need a projective integrator
     table(["KEY", "KIND", "SHAPE", "VALUE", "MIN", "MAX", "LR"] + (["NOTE"] if noted else []),
-          [[p.key, mc.enum_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)),
+          [[p.key, enums.short_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)),
             values(p.value), number(p.min), number(p.max), number(p.default_learning_rate)]
            + (["discontinuous" if p.discontinuous else ""] if noted else [])
            for p in parameters])

@@ -768,12 +768,12 @@ class MainWindow(QMainWindow):
         if job.state in mc.TERMINAL_STATES:
             self._load_history(job.name)  # the complete curve, whatever the stream missed
             self._fetch_result()
-            if job.state == pb.FAILED:
+            if job.state == pb.JOB_STATE_FAILED:
                 self.show_banner(f"{job.name} FAILED: {job.error or 'no reason given'}")
             else:
                 self.status(f"{job.name} {mc.state_name(job.state)}"
                             + (f" ({job.stop_reason})" if job.stop_reason else ""))
-        elif job.state == pb.INTERRUPTED:
+        elif job.state == pb.JOB_STATE_INTERRUPTED:
             # The daemon stopped while the job ran: is it still there at all?
             self.connection.check_now()
             self.status(f"{job.name} was interrupted: Resume continues it from its last "
@@ -788,7 +788,7 @@ class MainWindow(QMainWindow):
         # The daemon's best is the lowest loss, except for dual_buffer (a windowed mean of the
         # noisy estimates): that one only comes with the job's state.
         if (record.loss == record.loss and self.job is not None
-                and self.job.spec.loss != pb.DUAL_BUFFER
+                and self.job.spec.loss != pb.LOSS_DUAL_BUFFER
                 and (self.best_loss is None or record.loss < self.best_loss)):
             self.best_loss = record.loss
         done = record.iteration + 1  # records count from 0
@@ -863,7 +863,7 @@ class MainWindow(QMainWindow):
             if self.job is None or self.job.name != name or self.view.which() != which:
                 return
             self.result = result
-            label = "best" if result.which != pb.LAST else "last"
+            label = "best" if result.which != pb.WHICH_LAST else "last"
             self.view.result_label.setText(f"{label}: iteration {result.iteration}, "
                                            f"loss {result.loss:.4g}")
             self.params.show_current(result.parameters)
@@ -881,7 +881,7 @@ class MainWindow(QMainWindow):
 
         self._call(f"fetching the result of {name}",
                    lambda c: c.jobs.GetJobResult(pb.GetJobResultRequest(
-                       name=name, which=pb.LAST if which == "last" else pb.BEST),
+                       name=name, which=pb.WHICH_LAST if which == "last" else pb.WHICH_BEST),
                        timeout=CALL_TIMEOUT_S),
                    done, failed, quiet_codes=(grpc.StatusCode.FAILED_PRECONDITION,))
 
@@ -897,14 +897,14 @@ class MainWindow(QMainWindow):
             if value.value and value.key in self.params.keys():
                 self.params.set_initial(value.key, value.value)
                 count += 1
-        self._set_initial_from((self.job.name, self.result.which or pb.BEST))
+        self._set_initial_from((self.job.name, self.result.which or pb.WHICH_BEST))
         self.status(f"{count} start value(s) taken from {self.job.name} "
                     f"(iteration {self.result.iteration}); edit and Start")
 
     def _set_initial_from(self, source: tuple[str, int] | None) -> None:
         self.initial_from = source
         if source is not None:
-            which = "last" if source[1] == pb.LAST else "best"
+            which = "last" if source[1] == pb.WHICH_LAST else "best"
             self.continue_label.setText(f"Continues from {source[0]} ({which}) where the "
                                         f"table sets no start value")
         self.continue_label.setVisible(source is not None)
@@ -958,7 +958,7 @@ class MainWindow(QMainWindow):
         role = self.view.role.currentText()
         rendered = images.get((sensor, role))
         if rendered is not None:
-            label = "best" if self.result.which != pb.LAST else "last"
+            label = "best" if self.result.which != pb.WHICH_LAST else "last"
             iteration = f"{label} iteration {self.result.iteration}"
             caption = {"initial": "initial values",
                        "error": f"|optimized − reference|, {iteration}"}.get(
@@ -1020,7 +1020,7 @@ class MainWindow(QMainWindow):
         interval, keeping the cost to about 20% at most.
         """
         job, record, sensor = self.job, self.latest, self.view.sensor_index()
-        if (self._preview_busy or job is None or job.state != pb.RUNNING or record is None
+        if (self._preview_busy or job is None or job.state != pb.JOB_STATE_RUNNING or record is None
                 or sensor is None or not self.view.live.isChecked()
                 or not self.connection.usable or self.result is not None):
             return
@@ -1094,10 +1094,10 @@ class MainWindow(QMainWindow):
         self.open_action.setEnabled(connected)
         self.cornell_action.setEnabled(connected)
         self.references_action.setEnabled(self.scene is not None)
-        running = job is not None and job.state in (pb.QUEUED, pb.RUNNING)
+        running = job is not None and job.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING)
         self.pause_action.setEnabled(running)
-        self.resume_action.setEnabled(job is not None and job.state in (pb.PAUSED,
-                                                                         pb.INTERRUPTED))
+        self.resume_action.setEnabled(job is not None and job.state in (pb.JOB_STATE_PAUSED,
+                                                                         pb.JOB_STATE_INTERRUPTED))
         self.cancel_action.setEnabled(job is not None and job.state not in mc.TERMINAL_STATES)
         has_result = self.result is not None
         self.export_action.setEnabled(has_result)
@@ -1139,8 +1139,8 @@ def inherited(spec: pb.JobSpec) -> list[str]:
         out.append(f"seed {spec.seed}")
     if spec.HasField("learning_rate"):
         out.append(f"default learning rate {spec.learning_rate:g}")
-    if spec.resolution:
-        out.append(f"film height {spec.resolution} px")
+    if spec.film_height:
+        out.append(f"film height {spec.film_height} px")
     if spec.ground_truth:
         out.append(f"ground truth of {len(spec.ground_truth)} parameter(s)")
     if spec.image_error_every:

@@ -13,11 +13,12 @@ from PySide6.QtGui import QDoubleValidator
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QLineEdit, QSpinBox,
                                QWidget)
 
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-LOSSES = {name.lower(): value for name, value in pb.Loss.items() if value != pb.LOSS_UNSPECIFIED}
-SCHEDULES = {"cosine": pb.COSINE, "constant": pb.CONSTANT}
-SENSOR_MODES = {"accumulate": pb.ACCUMULATE, "step per sensor": pb.STEP_PER_SENSOR}
+LOSSES = {name: enums.parse(pb.Loss, name) for name in enums.short_names(pb.Loss)}
+SCHEDULES = {"cosine": pb.SCHEDULE_COSINE, "constant": pb.SCHEDULE_CONSTANT}
+SENSOR_MODES = {"accumulate": pb.SENSOR_MODE_ACCUMULATE, "step per sensor": pb.SENSOR_MODE_STEP_PER_SENSOR}
 LOSS_TIPS = {
     "mse": "mean squared error",
     "dual_buffer": "two independent renders, mean((a - ref)(b - ref)): render noise does not "
@@ -25,8 +26,6 @@ LOSS_TIPS = {
     "brightness_independent_mse": "MSE after dividing render and reference by their own means: "
                                   "matches colour and shading, not overall brightness",
     "mae": "mean absolute error (L1)",
-    "mean_bias_error": "mean(render - reference): a diagnostic of overall bias (too bright > 0), "
-                       "not an objective",
     "multiscale_mse": "MSE summed over an image pyramid (full, 1/2, 1/4, ...)",
 }
 
@@ -58,13 +57,13 @@ class JobSettings(QWidget):
         self.spp.setRange(1, 65536)
         self.spp.setValue(16)
         self.spp.setToolTip("samples per pixel of each optimization step")
-        self.min_error = QLineEdit("0.001")
+        self.min_error = QLineEdit("0")
         validator = QDoubleValidator(0.0, 1e30, 12)
         validator.setNotation(QDoubleValidator.Notation.ScientificNotation)
         validator.setLocale(QLocale.c())  # "0.001" everywhere, as the CLI and the API write it
         self.min_error.setValidator(validator)
         self.min_error.setToolTip("stop once the loss (mean over sensors) is below this; "
-                                  "0 runs all iterations")
+                                  "0 (the default) runs all iterations")
         self.sensor_mode = QComboBox()
         self.sensor_mode.addItems(list(SENSOR_MODES))
         self.sensor_mode.setToolTip("accumulate: one step per iteration from all sensors' "

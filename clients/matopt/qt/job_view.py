@@ -19,7 +19,7 @@ from matopt.qt.images import ImagePane
 from matopt.qt.plot import LossPlot
 from matopt_api.v1 import matopt_pb2 as pb
 
-RUNNING_STATES = (pb.QUEUED, pb.RUNNING)
+RUNNING_STATES = (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING)
 
 
 class JobView(QWidget):
@@ -158,7 +158,7 @@ class JobView(QWidget):
         text = f"<b>{job.name}</b> — {state}{reason}"
         if job.integrator:
             text += f" — {job.integrator}"
-        if job.state == pb.FAILED and job.error:
+        if job.state == pb.JOB_STATE_FAILED and job.error:
             text += f"<br><span style='color:#a00'>{_escape(job.error)}</span>"
         if job.resumed_from:
             text += f"<br>resumed from {job.resumed_from}"
@@ -169,7 +169,7 @@ class JobView(QWidget):
         self.progress.setRange(0, total)
         self.progress.setValue(min(job.iteration, total))
         self.pause_button.setEnabled(job.state in RUNNING_STATES)
-        self.resume_button.setEnabled(job.state in (pb.PAUSED, pb.INTERRUPTED))
+        self.resume_button.setEnabled(job.state in (pb.JOB_STATE_PAUSED, pb.JOB_STATE_INTERRUPTED))
         self.cancel_button.setEnabled(job.state not in mc.TERMINAL_STATES)
         self.set_numbers(job.iteration, job.loss if job.iteration else None,
                          job.best_loss if job.iteration and job.best_iteration >= 0 else None,

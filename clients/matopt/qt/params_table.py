@@ -23,12 +23,13 @@ from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLab
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from matopt import client as mc
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 # "Current" sits next to "Value" so that start and current values read side by side.
 COLUMNS = ["Opt.", "Key", "Kind", "Value", "Current", "Learning rate", "Min", "Max"]
 OPT, KEY, KIND, VALUE, CURRENT, LR, MIN, MAX = range(len(COLUMNS))
-EDITABLE_KINDS = (pb.SCALAR, pb.RGB)
+EDITABLE_KINDS = (pb.PARAMETER_KIND_SCALAR, pb.PARAMETER_KIND_RGB)
 INVALID = QColor(255, 205, 205)
 
 
@@ -149,7 +150,7 @@ class ParamsTable(QWidget):
         opt.setCheckState(Qt.CheckState.Unchecked)
         self.table.setItem(i, OPT, opt)
         self.table.setItem(i, KEY, _readonly(p.key, tooltip=_key_tooltip(p)))
-        kind = mc.enum_name(pb.ParameterKind, p.kind).replace("_", " ").lower()
+        kind = enums.short_name(pb.ParameterKind, p.kind).replace("_", " ").lower()
         shape = "×".join(map(str, p.shape))
         self.table.setItem(i, KIND, _readonly(f"{kind} {shape}" if shape and kind != "rgb"
                                               else kind))
@@ -160,7 +161,7 @@ class ParamsTable(QWidget):
             n = math.prod(p.shape) if p.shape else len(p.value)
             value = _readonly(format_values(p.value) if p.value else f"{n} values",
                               tooltip="only scalars and RGB colours can be edited here")
-        if p.kind == pb.RGB and len(p.value) >= 3:
+        if p.kind == pb.PARAMETER_KIND_RGB and len(p.value) >= 3:
             value.setIcon(swatch(p.value))
         self.table.setItem(i, VALUE, value)
         for column, number in ((LR, p.default_learning_rate), (MIN, p.min), (MAX, p.max)):
@@ -282,7 +283,7 @@ class ParamsTable(QWidget):
                     continue
                 item = self.table.item(i, CURRENT)
                 item.setText(format_values(v.value) if v.value else "(large: see export)")
-                if self.rows[i].parameter.kind == pb.RGB and len(v.value) >= 3:
+                if self.rows[i].parameter.kind == pb.PARAMETER_KIND_RGB and len(v.value) >= 3:
                     item.setIcon(swatch(v.value))
         finally:
             self._filling = False
@@ -328,7 +329,7 @@ class ParamsTable(QWidget):
                 item.setBackground(QBrush(INVALID) if problem else QBrush())
                 item.setToolTip(problem or "")
                 if (column == VALUE and not problem and self.rows[i].editable
-                        and self.rows[i].parameter.kind == pb.RGB):
+                        and self.rows[i].parameter.kind == pb.PARAMETER_KIND_RGB):
                     item.setIcon(swatch(parse_values(item.text())))
         finally:
             self._filling = False
