@@ -29,6 +29,8 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from .truth import ParameterError
+
 Fetch = Callable[[str], bytes]  # sha256 -> the blob's bytes (raises KeyError when unknown)
 
 # Parameter kinds, as the API names them (lower case of ParameterKind).
@@ -212,8 +214,7 @@ class IterationRecord:
     seconds: float
     loss: float
     values: dict[str, np.ndarray]
-    errors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-    # ^ with ground truth: (max |v - t|, rmse, rmse / rms(t)) per parameter
+    errors: dict[str, ParameterError] = field(default_factory=dict)  # with ground truth
     image_error: float | None = None
 
 

@@ -10,8 +10,8 @@ from typing import Sequence
 import click
 
 from matopt import client as mc
-from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
-                                uploading)
+from matopt.cli.output import (best, emit_json, fields, json_option, note, number,
+                                parameter_error, table, timestamp, uploading)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
@@ -293,14 +293,19 @@ def delete(name: str) -> None:
 def history(name: str, as_json: bool) -> None:
     """Show the loss per iteration.
 
-    With the optimizing time (paused and queued time excluded) at which each was reached.
+    With the optimizing time (paused and queued time excluded) at which each was reached and,
+    when the job has ground truth (--truth), each parameter's error against it: RMSE, PSNR
+    and, for textures and grids, the correlation with the truth per channel.
     """
     response = connected().jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
     if as_json:
         emit_json(response)
         return
-    table(["ITERATION", "SECONDS", "LOSS"],
-          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)] for r in response.iterations])
+    keys = list(dict.fromkeys(e.key for r in response.iterations for e in r.errors))
+    table(["ITERATION", "SECONDS", "LOSS"] + [f"ERROR {k}" for k in keys],
+          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)]
+           + [next((parameter_error(e) for e in r.errors if e.key == k), "") for k in keys]
+           for r in response.iterations])
 
 
 @job.command("export")

@@ -162,10 +162,13 @@ class MitsubaEngine:
         notes: list[str] = []
         refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
                                               for r in settings.references}, notes)
+        listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
+        channels = {k: int(listed[k].shape[-1]) for k in keys if k in listed
+                    and listed[k].kind in ("texture", "volume_grid") and listed[k].shape}
         config = Config(loss=settings.loss, iterations=settings.iterations,
                         min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
                         cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
-                        clamp=settings.clamp, truth=dict(settings.truth),
+                        clamp=settings.clamp, truth=dict(settings.truth), channels=channels,
                         image_error_every=settings.image_error_every,
                         image_error_spp=settings.image_error_spp)
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
@@ -182,7 +185,6 @@ class MitsubaEngine:
                 raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         else:
             opt.elapsed += time.perf_counter() - began
-        listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in opt.settings}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in opt.settings}
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
