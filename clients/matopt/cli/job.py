@@ -57,7 +57,46 @@ def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.Parame
         s = spec(arg.key, "--init")
         del s.initial_value[:]
         s.initial_value.extend(arg.values)
+        if arg.npy is not None:
+            s.initial_blob = arg.npy  # a local path until ``upload_values`` replaces it
     return list(specs.values())
+
+
+def check_npy(path: str, shape: Sequence[int], option: str) -> None:
+    """A .npy file's shape against its parameter's: equal, or flat with as many components
+    (Mitsuba's order). Fails naming the file and both shapes."""
+    import numpy as np  # only when a .npy is given
+
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise click.BadParameter(f"'{path}' is not a readable .npy file: {exc}",
+                                 param_hint=option) from None
+    expected = tuple(shape) or (1,)
+    size = int(np.prod(expected))
+    if array.shape != expected and not (array.ndim == 1 and array.size == size):
+        raise click.BadParameter(
+            f"'{path}' has shape {list(array.shape)}, but the parameter has shape "
+            f"{list(expected)} ({size} components)", param_hint=option)
+
+
+def upload_values(client: mc.Client, scene: str, specs: Sequence[pb.ParameterSpec],
+                  truths: Sequence[pb.ParameterValue]) -> None:
+    """Checks each --init/--truth .npy file against its parameter's shape, then uploads it
+    and names the blob in its place."""
+    files = [(s, "initial_blob", "--init") for s in specs if s.initial_blob] + \
+            [(t, "blob", "--truth") for t in truths if t.blob]
+    if not files:
+        return
+    shapes = {p.key: list(p.shape) for p in client.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=scene)).parameters}
+    for message, attribute, option in files:
+        path = getattr(message, attribute)
+        if not os.path.isfile(path):
+            raise click.BadParameter(f"'{path}' is not a file", param_hint=option)
+        if message.key in shapes:  # an unknown key is the daemon's to name
+            check_npy(path, shapes[message.key], option)
+        setattr(message, attribute, mc.blob_name(mc.upload_file(client, path, uploading)))
 
 
 def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]]
@@ -91,8 +130,9 @@ def _is_blob(image: str) -> bool:
               help="learning rate of one parameter (KEY=RATE), or of all without their own")
 @click.option("--range", "ranges", multiple=True, type=Range(),
               help="legal range of a parameter; a bound may be left empty")
-@click.option("--init", "inits", multiple=True, type=Values(),
-              help="start value of a parameter instead of the scene's")
+@click.option("--init", "inits", multiple=True, type=Values(npy=True),
+              help="start value of a parameter instead of the scene's: KEY=v1,v2,... or "
+                   "KEY=@values.npy (textures, grids)")
 @click.option("--loss", type=click.Choice(sorted(LOSSES), case_sensitive=False),
               help="image loss [daemon default: mse]")
 @click.option("--schedule", type=click.Choice(sorted(SCHEDULES), case_sensitive=False),
@@ -108,8 +148,9 @@ def _is_blob(image: str) -> bool:
 @click.option("--clamp", is_flag=True, help="clamp render and reference to [0, 1] (LDR)")
 @click.option("--resolution", type=int,
               help="film height in pixels; widths follow each reference's aspect ratio")
-@click.option("--truth", "truths", multiple=True, type=Values(),
-              help="known true value, KEY=v1,v2,...: each iteration records the error")
+@click.option("--truth", "truths", multiple=True, type=Values(npy=True),
+              help="known true value, KEY=v1,v2,... or KEY=@values.npy: each iteration "
+                   "records the error (RMSE, PSNR; 'matopt job history' shows it)")
 @click.option("--image-error-every", type=int,
               help="every N iterations, the image RMSE at higher spp (off the clock)")
 @click.option("--from", "from_job", metavar="JOB", type=JOB,
@@ -138,11 +179,13 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
              "image_error_every": image_error_every}
     spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
                       **{k: v for k, v in given.items() if v is not None})
-    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values) for t in truths)
+    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "")
+                             for t in truths)
     for _, image in refs:
         if not _is_blob(image) and not os.path.isfile(image):
             raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
     client = connected()
+    upload_values(client, scene, spec.parameters, spec.ground_truth)
     spec.references.extend(upload_references(client, refs))
     created = client.jobs.CreateJob(pb.CreateJobRequest(
         spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
