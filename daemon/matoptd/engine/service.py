@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import engine_api as api
+from .. import engine_api as api, film_filter
 from . import diagnosis, images, parameters, scene as scenes, scene_export
 from .optimize import Best, Config, Optimization, Reference, Setting
 
@@ -160,6 +160,8 @@ class MitsubaEngine:
         keys = [p.key for p in settings.parameters]
         loaded = self.load(settings.scene, keys)
         notes: list[str] = []
+        if settings.resolution:
+            loaded = self._scale_filters(settings, loaded, keys, notes)
         refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
                                               for r in settings.references}, notes)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
@@ -191,6 +193,53 @@ class MitsubaEngine:
                              shapes, kinds, settings.max_samples)
         return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
                            list(opt.references), opt.notes, shapes, kinds)
+
+    def _scale_filters(self, settings: api.JobSettings, loaded: mi.Scene, keys: list[str],
+                       notes: list[str]) -> mi.Scene:
+        """The scene again, with the reconstruction filter of each sensor whose film height
+        ``settings.resolution`` changes scaled by the same ratio (``film_filter``); a filter
+        Mitsuba does not let be sized is left as it is, with a note."""
+        sizes: dict[str, film_filter.Scaled] = {}
+        for index in sorted({r.sensor for r in settings.references}):
+            sensor = loaded.sensors()[index]
+            height = int(sensor.film().crop_size()[1])
+            ratio = settings.resolution / height
+            rfilter = sensor.film().rfilter()
+            name = str(rfilter).split("[")[0]
+            plugin = film_filter.PLUGINS.get(name, name)
+            scaled = film_filter.scale(plugin, rfilter.radius(), ratio)
+            if ratio == 1 or plugin == "box":  # a box filter is one pixel at any size
+                continue
+            if scaled is None:
+                notes.append(f"warning: sensor {index} renders at {ratio:g}x the scene's film "
+                             f"height, but its {plugin} reconstruction filter has a fixed "
+                             f"radius of {rfilter.radius():g} px, which Mitsuba does not let "
+                             "be scaled: renders blur differently from references made at the "
+                             "scene's size; use a gaussian or tent filter, or references at "
+                             "this resolution")
+            else:
+                sizes[sensor.id()] = scaled
+                notes.append(f"sensor {index}: {plugin} reconstruction filter {scaled.property} "
+                             f"scaled from {scaled.before:g} to {scaled.after:g} px ({ratio:g}x,"
+                             " with the film height), so renders blur as at the scene's size")
+        if not sizes:
+            return loaded
+        main = self.layout(settings.scene)
+        xml, missing = film_filter.rewrite(main.read_bytes(), sizes)
+        for sensor_id in missing:
+            notes.append(f"warning: the film of sensor '{sensor_id}' is not written in the "
+                         "main XML, so its reconstruction filter was not scaled with the film")
+        if len(missing) == len(sizes):
+            return loaded
+        path = main.parent / f".filters-{hashlib.sha256(xml).hexdigest()[:16]}.xml"
+        if not path.exists():
+            fd, tmp = tempfile.mkstemp(dir=main.parent, prefix=".write-")
+            with os.fdopen(fd, "wb") as f:
+                f.write(xml)
+            os.replace(tmp, path)
+        del loaded
+        return scenes.load(path, settings.scene.overrides, settings.scene.display, keys,
+                           root=self.cache / "scenes" / settings.scene.key)
 
     def _run(self, job: str) -> Run:
         try:
@@ -271,11 +320,14 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
     size. NaN/Inf pixels are masked out of every loss and counted."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
+    # Sizes before any resize: sensors may share one film, which the first resize changes
+    # for all of them, and each sensor's note compares with what its scene declared.
+    declared = [tuple(int(x) for x in s.film().crop_size()) for s in sensors]
     refs = {}
     for index, (path, name) in sorted(files.items()):
         picture = images.read_reference(str(path), name)
         film = sensors[index].film().crop_size()
-        width, height = api.reference_film(settings.resolution or int(film[1]),
+        width, height = api.reference_film(settings.resolution or declared[index][1],
                                            picture.shape[1], picture.shape[0])
         if (width, height) != (int(film[0]), int(film[1])):
             key = _film_key(params, sensors[index])
@@ -284,8 +336,12 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
                                        f"{width}x{height} for reference '{name}'")
             params[key] = mi.ScalarVector2u(width, height)
             params.update()
+        if (width, height) != declared[index]:
             notes.append(f"sensor {index} renders {width}x{height} (film was "
-                         f"{int(film[0])}x{int(film[1])}) to follow reference '{name}'")
+                         f"{declared[index][0]}x{declared[index][1]}) to follow "
+                         + (f"--resolution {settings.resolution} and " if settings.resolution
+                            else "") + f"reference '{name}' ({picture.shape[1]}x"
+                         f"{picture.shape[0]})")
         picture = images.fit(picture, (width, height))
         valid = np.isfinite(picture).all(axis=2, keepdims=True)
         if not valid.all():
