@@ -15,7 +15,8 @@ with the same losses it would have had.
     engine.start(job, settings, checkpoint=None) -> Started
     engine.step(job, n)                          -> Progress     (n iterations, records)
     engine.checkpoint(job)                       -> bytes
-    engine.finish(job, history, cancelled)       -> Finished     (results, diagnosis)
+    engine.result_images(job, sensor)            -> {which: [Image]} (one sensor's renders)
+    engine.finish(job, history, cancelled, render) -> Finished   (results, diagnosis)
     engine.release(job)                          -> None         (memory freed)
     engine.describe_scene(scene)                 -> SceneDescription
     engine.render(scene, request)                -> list[Image]
@@ -284,9 +285,15 @@ class Engine(Protocol):
     def checkpoint(self, job: str) -> bytes:
         """Everything needed to continue exactly: values, Adam's state, best, clock."""
 
-    def finish(self, job: str, history: list[IterationRecord], cancelled: bool) -> Finished:
+    def result_images(self, job: str, sensor: int) -> dict[str, list[Image]]:
+        """One sensor's result images per result ("best", "last"): initial, optimized,
+        reference, error. The end phase makes them one sensor per call."""
+
+    def finish(self, job: str, history: list[IterationRecord], cancelled: bool,
+               render: bool = True) -> Finished:
         """The job's results (best, and last unless it was cancelled before a step returned)
-        and its diagnosis, from its history as the daemon recorded it."""
+        and its diagnosis, from its history as the daemon recorded it. Without ``render``,
+        no per-sensor images (``result_images`` made them)."""
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""

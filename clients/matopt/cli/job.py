@@ -314,8 +314,28 @@ _control("pause", "PauseJob", pb.PauseJobRequest,
          "next iteration boundary: 'matopt job watch' shows it.")
 _control("resume", "ResumeJob", pb.ResumeJobRequest,
          "Resume a paused or interrupted job.")
-_control("cancel", "CancelJob", pb.CancelJobRequest,
-         "Cancel a job (at its next iteration).\n\nIts results so far are kept.")
+@job.command("cancel")
+@click.argument("name", metavar="JOB", type=JOB)
+@json_option
+def cancel(name: str, as_json: bool) -> None:
+    """Cancel a job (at its next iteration).
+
+    Its results so far are kept: a running job stops at its next iteration boundary, then
+    renders its result images (one sensor at a time, other jobs running in between) and
+    ends CANCELLED. Prints the job's state and, while the cancel is pending, what happens
+    next.
+    """
+    j = connected().jobs.CancelJob(pb.CancelJobRequest(name=name))
+    if as_json:
+        emit_json(j)
+        return
+    pending = next((n.removeprefix("end phase: ") for n in j.notes
+                    if n.startswith("end phase: ")), None)
+    if j.state in (pb.CANCELLED, pb.SUCCEEDED, pb.FAILED) or pending is None:
+        click.echo(f"{j.name} {mc.state_name(j.state)}")
+    else:
+        click.echo(f"{j.name} {mc.state_name(j.state)}: {pending}; "
+                   f"'matopt job watch {j.name}' follows it to the end")
 
 
 @job.command()

@@ -107,6 +107,9 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
             text += f", best {best(job)}"
         if job.error:
             text += f": {job.error}"
+        phase = next((n for n in job.notes if n.startswith("end phase: ")), None)
+        if phase and job.state == pb.RUNNING:  # e.g. rendering result images 3/8
+            text += f" ({phase})"
         return text
     record = event.iteration
     of = f"/{total}" if total else ""

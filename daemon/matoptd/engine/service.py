@@ -269,16 +269,21 @@ class MitsubaEngine:
     def checkpoint(self, job: str) -> bytes:
         return self._run(job).opt.checkpoint()
 
-    def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool
-               ) -> api.Finished:
+    def result_images(self, job: str, sensor: int) -> dict[str, list[api.Image]]:
+        """One sensor's result images, per result ("best", "last"): initial, optimized,
+        reference and |optimized - reference|. One call per sensor, so that the daemon can
+        let other jobs run between them (and a cancel end promptly)."""
+        run = self._run(job)
+        return _sensor_images(run, _chosen(run.opt), sensor)
+
+    def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
+               render: bool = True) -> api.Finished:
         """Results for the best and the last iteration run (none before the first), then the
-        diagnosis. Renders in results are off the job's clock."""
+        diagnosis. Renders in results are off the job's clock. Without ``render`` the results
+        hold no per-sensor images (``result_images`` made them) but still the textures."""
         run = self._run(job)
         opt = run.opt
-        chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
-        if opt.last.iteration >= 0:
-            chosen.append(("last", opt.last))
-        results = _results(run, chosen)
+        results = _results(run, _chosen(opt), render)
         opt.flush()
         paths: dict[str, list[list[float]]] = {}
         for record in history:
@@ -353,27 +358,43 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
     return refs
 
 
-def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
-    """For each chosen iteration: the renders per sensor (initial, optimized, reference,
-    |optimized - reference|), optimized textures as images, and the optimized scene. Initial
-    and reference images are made once and shared."""
+def _chosen(opt: Optimization) -> list[tuple[str, Best]]:
+    """The iterations a job's results show: the best, and the last run (none before the
+    first)."""
+    chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
+    if opt.last.iteration >= 0:
+        chosen.append(("last", opt.last))
+    return chosen
+
+
+def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
+                   ) -> dict[str, list[api.Image]]:
+    """One sensor's renders per chosen iteration (initial, optimized, reference,
+    |optimized - reference|); initial and reference are made once and shared."""
     opt = run.opt
-    shared, spp = {}, {}
-    for sensor, ref in opt.references.items():
-        reference = np.array(ref.image, dtype=np.float32)
-        spp[sensor] = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1],
-                                     run.max_samples)
-        shared[sensor] = (reference, [image(opt.render(opt.initial, sensor, spp[sensor]),
-                                            sensor, "initial"),
-                                      image(reference, sensor, "reference")])
+    ref = opt.references[sensor]
+    reference = np.array(ref.image, dtype=np.float32)
+    spp = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1], run.max_samples)
+    first = image(opt.render(opt.initial, sensor, spp), sensor, "initial")
+    ref_image = image(reference, sensor, "reference")
+    out = {}
+    for which, it in chosen:
+        optimized = opt.render(it.values, sensor, spp)
+        error = np.abs(optimized - reference) * ref.mask()
+        out[which] = [first, image(optimized, sensor, "optimized"), ref_image,
+                      image(error, sensor, "error")]
+    return out
+
+
+def _results(run: Run, chosen: list[tuple[str, Best]], render: bool = True
+             ) -> list[api.Result]:
+    """For each chosen iteration: the renders per sensor (with ``render``), optimized
+    textures as images, and the optimized scene."""
+    opt = run.opt
+    per_sensor = [_sensor_images(run, chosen, s) for s in opt.references] if render else []
     out = []
     for which, it in chosen:
-        images_ = []
-        for sensor, (reference, (first, ref_image)) in shared.items():
-            optimized = opt.render(it.values, sensor, spp[sensor])
-            error = np.abs(optimized - reference) * opt.references[sensor].mask()
-            images_ += [first, image(optimized, sensor, "optimized"), ref_image,
-                        image(error, sensor, "error")]
+        images_ = [i for sensor in per_sensor for i in sensor[which]]
         for key, v in it.values.items():
             shape = run.shapes[key]
             if run.kinds.get(key) == "texture" and len(shape) == 3:
