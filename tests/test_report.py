@@ -64,7 +64,8 @@ def test_report_csv_matches_history_and_plots_are_pngs(daemon, stubs, two_jobs, 
         rows = list(csv.DictReader(f))
     error_columns = [f"relative_error:{k}" for k in WALLS]
     assert list(rows[0])[:6] == ["job", "label", "iteration", "seconds", "loss", "image_error"]
-    assert sorted(list(rows[0])[6:]) == sorted(error_columns)
+    psnr_columns = [f"psnr:{k}" for k in WALLS]
+    assert sorted(list(rows[0])[6:]) == sorted(error_columns + psnr_columns)
     for name in names:
         history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
         mine = [r for r in rows if r["job"] == name]
@@ -85,6 +86,9 @@ def test_report_csv_matches_history_and_plots_are_pngs(daemon, stubs, two_jobs, 
             t = np.asarray(truth[key])
             expected = np.sqrt(np.mean((values[key] - t) ** 2)) / np.sqrt(np.mean(t ** 2))
             assert float(row[column]) == pytest.approx(expected, rel=1e-3)
+            rmse = np.sqrt(np.mean((values[key] - t) ** 2))
+            assert float(row[f"psnr:{key}"]) == pytest.approx(
+                20 * np.log10(np.abs(t).max() / rmse), abs=0.01)
     assert float(rows[0][error_columns[0]]) > 0.1  # from grey walls: far off at first
     assert all(r[c] == "" for r in rows if r["job"] == names[1] for c in error_columns)
 

@@ -13,7 +13,8 @@ import pytest
 from matoptd.scheduler import Action, Scheduler
 
 ITERATION = 0.01                                    # seconds per iteration of every job
-COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.3, "task": 0.1}
+COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.0, "results": 0.3,
+         "finish": 0.1, "task": 0.1}
 
 
 class Clock:
@@ -33,10 +34,11 @@ def make(workers: int = 1, **kw) -> tuple[Scheduler, Clock]:
     return s, clock
 
 
-def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | None = None
-        ) -> list[Action]:
+def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | None = None,
+        parts: dict[str, int] | None = None) -> list[Action]:
     """Runs the workers in turn (one action each, lowest clock first) for ``seconds``.
-    ``remaining``: iterations left per job; a job ends when they run out."""
+    ``remaining``: iterations left per job; a job ends when they run out. ``parts``: the
+    sensors whose result images a cancelled job's end phase renders (as the runner says)."""
     done: list[Action] = []
     free_at = {w: clock.t for w in s.workers}
     end = clock.t + seconds
@@ -60,7 +62,10 @@ def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | 
         else:
             clock.t += COSTS[action.kind]
             n = 0
+            finished = action.kind == "finish"
         s.done(action, iterations=n, finished=finished)
+        if action.kind == "cancel":
+            s.end(action.job, (parts or {}).get(action.job, 0))
         free_at[w] = clock.t
         done.append(action)
 
@@ -173,6 +178,16 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     cancel = s.next("w0")
     assert (cancel.kind, cancel.job) == ("cancel", "a")
     s.done(cancel)
+    s.end("a", 2)                                  # two sensors' result images to make
+    assert [(a.kind, a.n) for a in (s.next("w0"),)] == [("results", 0)]
+    s.done(s.workers["w0"].action)
+    assert s.cancel("a") is False                  # a second cancel changes nothing
+    results = s.next("w0")
+    assert (results.kind, results.n) == ("results", 1)
+    s.done(results)
+    finish = s.next("w0")
+    assert finish.kind == "finish"
+    s.done(finish, finished=True)
     assert "a" not in s.jobs
 
 
@@ -307,3 +322,23 @@ def test_a_charge_for_work_in_flight_is_refunded_when_it_is_done_or_lost():
     assert s.usage["alice"] == pytest.approx(0.4)  # the estimate replaced by the real time
     s.worker_lost("w1", "died")
     assert s.usage["bob"] == pytest.approx(0.0)  # nothing was done: nothing is owed
+
+
+def test_an_end_phase_shares_the_worker_with_other_users_jobs():
+    """A cancelled job's result images, one sensor per action, take slices like iterations:
+    another user's job goes on stepping between them, and the end phase still completes."""
+    s, clock = make(slice_seconds=0.5)
+    s.add_job("a", "alice")
+    s.add_job("b", "bob")
+    run(s, clock, 2.0)                             # both loaded and stepped in turns
+    s.cancel("a")
+    actions = run(s, clock, 20.0, parts={"a": 8})
+    assert [x.job for x in actions if x.kind == "cancel"] == ["a"]
+    kinds = [(x.kind, x.job) for x in actions]
+    parts = [i for i, k in enumerate(kinds) if k == ("results", "a")]
+    assert "a" not in s.jobs
+    finish = kinds.index(("finish", "a"))
+    assert len(parts) == 8 and finish > parts[-1]
+    between = [k for k in kinds[parts[0]:finish] if k == ("step", "b")]
+    assert between, kinds                          # bob's job ran during alice's end phase
+    assert [x.n for x in actions if x.kind == "results"] == list(range(8))

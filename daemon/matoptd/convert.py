@@ -144,7 +144,8 @@ def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]]) -> pb.Ite
     out = pb.IterationRecord(
         iteration=r.iteration, seconds=r.seconds, loss=r.loss,
         parameters=values_to_pb(r.values, shapes, None),
-        errors=[pb.ParameterError(key=k, max_abs=e[0], rmse=e[1], relative=e[2])
+        errors=[pb.ParameterError(key=k, max_abs=e.max_abs, rmse=e.rmse, relative=e.relative,
+                                  psnr=e.psnr, correlation=e.correlation)
                 for k, e in r.errors.items()])
     if r.image_error is not None:
         out.image_error = r.image_error

@@ -15,7 +15,8 @@ with the same losses it would have had.
     engine.start(job, settings, checkpoint=None) -> Started
     engine.step(job, n)                          -> Progress     (n iterations, records)
     engine.checkpoint(job)                       -> bytes
-    engine.finish(job, history, cancelled)       -> Finished     (results, diagnosis)
+    engine.result_images(job, sensor)            -> {which: [Image]} (one sensor's renders)
+    engine.finish(job, history, cancelled, render) -> Finished   (results, diagnosis)
     engine.release(job)                          -> None         (memory freed)
     engine.describe_scene(scene)                 -> SceneDescription
     engine.render(scene, request)                -> list[Image]
@@ -28,6 +29,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import numpy as np
+
+from .truth import ParameterError
 
 Fetch = Callable[[str], bytes]  # sha256 -> the blob's bytes (raises KeyError when unknown)
 
@@ -212,8 +215,7 @@ class IterationRecord:
     seconds: float
     loss: float
     values: dict[str, np.ndarray]
-    errors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-    # ^ with ground truth: (max |v - t|, rmse, rmse / rms(t)) per parameter
+    errors: dict[str, ParameterError] = field(default_factory=dict)  # with ground truth
     image_error: float | None = None
 
 
@@ -283,9 +285,15 @@ class Engine(Protocol):
     def checkpoint(self, job: str) -> bytes:
         """Everything needed to continue exactly: values, Adam's state, best, clock."""
 
-    def finish(self, job: str, history: list[IterationRecord], cancelled: bool) -> Finished:
+    def result_images(self, job: str, sensor: int) -> dict[str, list[Image]]:
+        """One sensor's result images per result ("best", "last"): initial, optimized,
+        reference, error. The end phase makes them one sensor per call."""
+
+    def finish(self, job: str, history: list[IterationRecord], cancelled: bool,
+               render: bool = True) -> Finished:
         """The job's results (best, and last unless it was cancelled before a step returned)
-        and its diagnosis, from its history as the daemon recorded it."""
+        and its diagnosis, from its history as the daemon recorded it. Without ``render``,
+        no per-sensor images (``result_images`` made them)."""
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""

@@ -116,6 +116,10 @@ class Runner:
         self._shapes: dict[str, dict[str, list[int]]] = {}
         self._checkpointed: dict[str, tuple[int, float]] = {}  # iteration, time
         self._cancelled_at: dict[str, float] = {}
+        # Jobs in their end phase: the state and reason they end with, and the result images
+        # made so far (per result, "best"/"last"), one sensor per "results" action.
+        self._ending: dict[str, tuple[int, str]] = {}
+        self._images: dict[str, dict[str, list[pb.Image]]] = {}
         self._monitor = threading.Thread(target=self._watch_workers, name="matoptd-monitor",
                                          daemon=True)
         self._recover()
@@ -198,6 +202,7 @@ class Runner:
 
     def _interrupt(self, job: pb.Job, why: str) -> None:
         cp = self._checkpointed.get(job.name)
+        _phase(job, "")
         job.state = pb.JOB_STATE_INTERRUPTED
         job.stop_reason = (f"{why}; resume continues from the checkpoint at iteration {cp[0]}"
                            if cp else why)
@@ -269,8 +274,12 @@ class Runner:
             if self.scheduler.cancel(name):
                 job.state, job.stop_reason = pb.JOB_STATE_CANCELLED, "cancelled"
                 self._save(job)
-            else:
+            elif not self.scheduler.jobs[name].ending:
                 self._cancelled_at[name] = time.monotonic()
+                _phase(job, "cancel requested: the job stops at its next iteration boundary, "
+                       "then renders its result images one sensor at a time (other jobs run "
+                       "in between) and ends CANCELLED")
+                self._save(job)
                 self.wake.notify_all()
             return job
 
@@ -432,7 +441,13 @@ class Runner:
             elif action.kind in ("evict", "park"):
                 self._unload(engine, job, action)
             elif action.kind == "cancel":
-                self._finish(engine, job, action, pb.JOB_STATE_CANCELLED, "cancelled", cancelled=True)
+                self._end(job, action, pb.JOB_STATE_CANCELLED, "cancelled")
+            elif action.kind == "results":
+                self._results(engine, job, action)
+            elif action.kind == "finish":
+                state, reason = self._ending.get(job.name, (pb.JOB_STATE_CANCELLED, "cancelled"))
+                self._finish(engine, job, action, state, reason,
+                             cancelled=state == pb.JOB_STATE_CANCELLED)
         except UserError as exc:
             self._fail(engine, job, action, str(exc))
 
@@ -472,8 +487,7 @@ class Runner:
             self.store.put_job(job)
         self._publish(job.name, [pb.JobEvent(iteration=r) for r in records])
         if progress.done:
-            self._finish(engine, job, action, pb.JOB_STATE_SUCCEEDED, progress.stop_reason,
-                         iterations=len(records))
+            self._end(job, action, pb.JOB_STATE_SUCCEEDED, progress.stop_reason, len(records))
             return
         at, when = self._checkpointed.get(job.name, (0, 0.0))
         if (job.iteration - at >= CHECKPOINT_ITERATIONS
@@ -481,6 +495,43 @@ class Runner:
             self.store.write_checkpoint(job.name, engine.checkpoint(job.name))
             self._checkpointed[job.name] = (job.iteration, time.monotonic())
         self._done(action, iterations=len(records))
+
+    def _end(self, job: pb.Job, action: Action, state: int, reason: str,
+             iterations: int = 0) -> None:
+        """The iterations are over: the end phase begins, one "results" action per rendered
+        sensor (scheduled like iterations, so other jobs go on between them), then "finish"."""
+        with self.lock:
+            self._cancelled_at.pop(job.name, None)  # result renders are not cut off
+            self._ending[job.name] = (state, reason)
+            job = self.store.get_job(job.name)
+            parts = len(job.sensors_rendered) if job.iteration else 0
+            ended = (f"cancelled at iteration {job.iteration}" if state == pb.JOB_STATE_CANCELLED
+                     else f"iterations over ({reason})")
+            _phase(job, f"{ended}: rendering result images 0/{parts}" if parts else ended)
+            self._save(job)
+            self.scheduler.done(action, iterations)
+            self.scheduler.end(job.name, parts)
+            self.wake.notify_all()
+
+    def _results(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
+        """One sensor's result images, stored at once; the job's notes count them."""
+        sensor = job.sensors_rendered[action.n]
+        made: dict[str, list[api.Image]] = engine.result_images(job.name, sensor)
+        put = self.store.writer(job.owner)
+        stored = {which: [convert.image_to_pb(i, put) for i in images]
+                  for which, images in made.items()}
+        with self.lock:
+            kept = self._images.setdefault(job.name, {})
+            for which, images in stored.items():
+                kept.setdefault(which, []).extend(images)
+            job = self.store.get_job(job.name)
+            total = len(job.sensors_rendered)
+            phase = next((n for n in job.notes if n.startswith(PHASE)), PHASE)
+            _phase(job, phase.removeprefix(PHASE).rsplit(" ", 1)[0]
+                   + f" {action.n + 1}/{total}")
+            self._save(job)
+            self.scheduler.done(action)
+            self.wake.notify_all()
 
     def _unload(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
         """Evict (the job waits for its next slice) or park (it is paused): either way the
@@ -499,17 +550,27 @@ class Runner:
     def _finish(self, engine: RemoteEngine, job: pb.Job, action: Action, state: int, reason: str,
                 cancelled: bool = False, iterations: int = 0) -> None:
         history = [convert.record_from_pb(r) for r in self.store.history(job.name)]
-        finished: api.Finished = engine.finish(job.name, history, cancelled)
+        finished: api.Finished = engine.finish(job.name, history, cancelled, False)
         scene = self.store.get_scene(job.owner, job.spec.scene)
         shapes = self._shapes.get(job.name, {})
+        made = self._images.get(job.name, {})
         for result in finished.results:
-            self.store.put_result(convert.result_to_pb(job.name, result, shapes, scene,
-                                                       self.store.writer(job.owner)))
+            out = convert.result_to_pb(job.name, result, shapes, scene,
+                                       self.store.writer(job.owner))
+            images = made.get(result.which, []) + list(out.images)  # sensors, then textures
+            del out.images[:]
+            out.images.extend(images)
+            self.store.put_result(out)
         engine.release(job.name)
         with self.lock:
             job = self.store.get_job(job.name)
+            _phase(job, "")
+            if cancelled:
+                job.notes.append(f"cancelled at iteration {job.iteration}; the results show "
+                                 "the best and the last iteration run")
             job.notes.extend(finished.notes)
-            job.notes.append(stop_note(reason, job))
+            if not cancelled:
+                job.notes.append(stop_note(reason, job))
             convert.counters_to_job(job, finished.counters)
             job.state, job.stop_reason = state, reason
             self._save(job)
@@ -519,7 +580,8 @@ class Runner:
 
     def _fail(self, engine: RemoteEngine | None, job: pb.Job, action: Action,
               message: str) -> None:
-        if engine is not None and action.kind in ("step", "evict", "park", "cancel"):
+        if engine is not None and action.kind in ("step", "evict", "park", "cancel", "results",
+                                                  "finish"):
             try:
                 engine.release(job.name)
             except UserError:
@@ -588,7 +650,8 @@ class Runner:
             self.wake.notify_all()
 
     def _forget(self, name: str) -> None:
-        for d in (self._shapes, self._checkpointed, self._cancelled_at):
+        for d in (self._shapes, self._checkpointed, self._cancelled_at, self._ending,
+                  self._images):
             d.pop(name, None)
 
     def _close(self, w: Worker) -> None:
@@ -756,7 +819,17 @@ class Runner:
 
 
 _DOING = {"load": "loading the job", "evict": "saving the job's checkpoint",
-          "park": "pausing the job", "cancel": "making the job's results", "task": "a task"}
+          "park": "pausing the job", "cancel": "stopping the job",
+          "results": "rendering the job's result images", "finish": "making the job's results",
+          "task": "a task"}
+PHASE = "end phase: "  # the note that says what a job in its end phase is doing
+
+
+def _phase(job: pb.Job, text: str) -> None:
+    """Replaces the job's end-phase note with ``text`` (none when empty)."""
+    notes = [n for n in job.notes if not n.startswith(PHASE)] + ([PHASE + text] if text else [])
+    del job.notes[:]
+    job.notes.extend(notes)
 
 
 def _offer(queues: list[asyncio.Queue], events: list[pb.JobEvent]) -> None:

@@ -8,6 +8,9 @@ Decisions, in order, for a free worker:
 1. a pause or cancel requested on a job loaded on it (acted on at an iteration boundary);
 2. a scene task (load, render, reference check): short, and a user is waiting on each;
 3. the job whose slice is running, until ``slice_seconds`` have passed while others wait;
+   a job in its end phase (its iterations are over, or it was cancelled) makes its result
+   images one sensor per action ("results"), then ends ("finish"): other jobs get their
+   slices between, so an end phase of many sensors does not hold a worker for minutes;
 4. else the next job by fair share *per user*: the user with the least device time so far
    (a user with ten jobs gets no more than a user with one), then that user's least-served
    job. A user who was idle comes back at the least busy active user's account, not with
@@ -40,7 +43,9 @@ EMA = 0.3             # weight of the newest per-iteration time
 class Action:
     """What a worker does next. ``kind``: "task", "load", "step" (``n`` iterations), "evict"
     (checkpoint, release; the job waits for its next slice), "park" (checkpoint, release;
-    the job is paused), "cancel" (results, release)."""
+    the job is paused), "cancel" (the iterations stop: the end phase begins), "results"
+    (the result images of the job's ``n``-th rendered sensor), "finish" (the rest of the
+    results, release; the job ends)."""
 
     kind: str
     worker: str
@@ -65,6 +70,9 @@ class Job:
     used: float = 0.0           # device seconds so far
     last_run: float = -math.inf
     crashes: list[str] = field(default_factory=list)  # how workers were lost under it
+    ending: bool = False        # in its end phase: no more iterations, results to make
+    parts: int = 0              # sensors whose result images the end phase renders...
+    part: int = 0               # ...and how many of them are done
 
     @property
     def wants_worker(self) -> bool:
@@ -186,11 +194,21 @@ class Scheduler:
         """True when the job can end now, without a worker: it never ran, or it is not loaded
         and has nothing to show. Else a worker loads it (if needed) and finishes it."""
         job = self.jobs[name]
+        if job.ending:  # its iterations are over already: the end phase goes on
+            return False
         if job.worker is None and not job.busy and not job.started:
             self.remove(name)
             return True
         job.control = "cancel"
         return False
+
+    def end(self, name: str, parts: int) -> None:
+        """The job's iterations are over (it ran them all, or a cancel stopped them): what
+        is left is its end phase, ``parts`` "results" actions and a "finish"."""
+        job = self.jobs[name]
+        job.ending, job.parts, job.part = True, parts, 0
+        if job.control == "cancel":
+            job.control = ""
 
     def in_flight(self, name: str) -> Action | None:
         """The action running on the job, if any."""
@@ -213,7 +231,7 @@ class Scheduler:
             return None
         for name in w.resident:
             job = self.jobs[name]
-            if job.control == "cancel":
+            if job.control == "cancel" and not job.ending:
                 return self._begin(w, Action("cancel", worker, name))
             if job.control == "pause":
                 return self._begin(w, Action("park", worker, name))
@@ -225,6 +243,9 @@ class Scheduler:
         if job.worker == worker:
             if w.current != job.name or w.slice_start is None or self._expired(w):
                 w.current, w.slice_start = job.name, self.clock()  # a new slice
+            if job.ending:
+                return self._begin(w, Action("results", worker, job.name, n=job.part)
+                                   if job.part < job.parts else Action("finish", worker, job.name))
             return self._begin(w, Action("step", worker, job.name, n=self._iterations(job, w)))
         if len(w.resident) >= self.max_resident:
             return self._begin(w, Action("evict", worker, w.resident[0]))
@@ -265,7 +286,11 @@ class Scheduler:
                 job.paused = True
                 if job.control == "pause":  # a cancel that came meanwhile still stands
                     job.control = ""
-        if finished or action.kind == "cancel":
+        if action.kind == "cancel":  # the runner says with ``end`` how many parts follow
+            job.ending, job.control = True, ""
+        if action.kind == "results":
+            job.part += 1
+        if finished:
             self.remove(job.name)
 
     def drop_run(self, action: Action) -> None:

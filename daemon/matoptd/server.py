@@ -25,7 +25,7 @@ from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from . import admission, blob_refs, convert, fields, scenes
+from . import admission, blob_refs, convert, engine_api as api, fields, range_notes, scenes
 from .auth import Authenticator
 from .errors import FailedPrecondition, InvalidArgument, UserError
 from .runner import FINAL, Runner, now
@@ -411,6 +411,39 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
     return out
 
 
+def _check_blob_sizes(spec: pb.JobSpec, settings: api.JobSettings,
+                      params: dict[str, pb.Parameter]) -> None:
+    """Initial values and ground truth given as .npy blobs: as many components as their
+    parameter has (inline ones were counted by ``_check_spec``)."""
+    given = [(f"initial value of '{p.key}'", p.initial_blob, p.key, s.initial)
+             for p, s in zip(spec.parameters, settings.parameters)]
+    given += [(f"ground truth of '{t.key}'", t.blob, t.key, settings.truth.get(t.key))
+              for t in spec.ground_truth]
+    for what, blob, key, value in given:
+        shape = list(params[key].shape)
+        size = math.prod(shape) if shape else 1
+        if blob and value is not None and value.size != size:
+            raise InvalidArgument(f"{what} ({blob}) has {value.size} component(s), expected "
+                                  f"{size} (shape {shape})")
+
+
+def _clip_notes(settings: api.JobSettings, restarted: set[str],
+                request: pb.CreateJobRequest) -> list[str]:
+    """Start values outside the job's range, which the engine clips into it: said up front,
+    since a restart with a narrower range would otherwise quietly start elsewhere."""
+    which = enums.short_name(pb.Which, request.initial_from_which or pb.WHICH_BEST).lower()
+    notes = []
+    for p in settings.parameters:
+        if p.initial is None:
+            continue
+        source = (f"the {which} result of {_name('jobs', request.initial_from_job)}"
+                  if p.key in restarted else "the initial value")
+        note = range_notes.clip_note(p.key, p.initial, p.lo, p.hi, source)
+        if note:
+            notes.append(note)
+    return notes
+
+
 class JobService(rpc.JobServiceServicer):
     def __init__(self, svc: Service) -> None:
         self.store, self.runner, self.auth = svc.store, svc.runner, svc.auth
@@ -430,11 +463,11 @@ class JobService(rpc.JobServiceServicer):
             self.store.blob_file(sha, user)
         params = {p.key: p for p in self.store.scene_parameters(user, scene.name).parameters}
         spec = _check_spec(request.spec, scene, params, self.store)
-        if request.initial_from_job:
-            self._start_from(user, request, spec)
+        restarted = self._start_from(user, request, spec) if request.initial_from_job else set()
         # Decoding every value now refuses a malformed .npy here, not when the job loads.
         settings = convert.job_settings(spec, self.runner.scene_input(scene),
                                         self.store.reader(user))
+        _check_blob_sizes(spec, settings, params)
         estimate = admission.admit_job(settings, _films(scene), self.store.blob_file,
                                        self.limits)
         with self.tasks.hold(user):
@@ -442,6 +475,7 @@ class JobService(rpc.JobServiceServicer):
         self._admit_another(user)  # again: other requests of this user may have come first
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.JOB_STATE_QUEUED,
                      owner=user, best_iteration=-1)
+        job.notes.extend(_clip_notes(settings, restarted, request))
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)
@@ -455,9 +489,11 @@ class JobService(rpc.JobServiceServicer):
                                       (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING))
         admission.check_jobs(user, len(active), self.limits)
 
-    def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec) -> None:
+    def _start_from(self, user: str, request: pb.CreateJobRequest, spec: pb.JobSpec
+                    ) -> set[str]:
         """A restart: parameters without an initial value of their own start where another
-        job's result left them (values inline, large ones by blob: nothing is re-uploaded)."""
+        job's result left them (values inline, large ones by blob: nothing is re-uploaded).
+        Returns the keys that start so."""
         source = _name("jobs", request.initial_from_job)
         self.store.get_job(source, user)
         which = request.initial_from_which or pb.WHICH_BEST
@@ -466,13 +502,16 @@ class JobService(rpc.JobServiceServicer):
             raise FailedPrecondition(f"job '{source}' has no {enums.short_name(pb.Which, which)} result to "
                                      "start from")
         found = {v.key: v for v in result.parameters}
+        taken = set()
         for p in spec.parameters:
             if p.initial_value or p.initial_blob or p.key not in found:
                 continue
+            taken.add(p.key)
             if found[p.key].blob:
                 p.initial_blob = found[p.key].blob
             else:
                 p.initial_value[:] = found[p.key].value
+        return taken
 
     @unary
     async def GetJob(self, request, context, user):

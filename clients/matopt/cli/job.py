@@ -10,8 +10,8 @@ from typing import Sequence
 import click
 
 from matopt import client as mc
-from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
-                                uploading)
+from matopt.cli.output import (best, emit_json, fields, json_option, note, number,
+                                parameter_error, table, timestamp, uploading)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
@@ -58,7 +58,46 @@ def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.Parame
         s = spec(arg.key, "--init")
         del s.initial_value[:]
         s.initial_value.extend(arg.values)
+        if arg.npy is not None:
+            s.initial_blob = arg.npy  # a local path until ``upload_values`` replaces it
     return list(specs.values())
+
+
+def check_npy(path: str, shape: Sequence[int], option: str) -> None:
+    """A .npy file's shape against its parameter's: equal, or flat with as many components
+    (Mitsuba's order). Fails naming the file and both shapes."""
+    import numpy as np  # only when a .npy is given
+
+    try:
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise click.BadParameter(f"'{path}' is not a readable .npy file: {exc}",
+                                 param_hint=option) from None
+    expected = tuple(shape) or (1,)
+    size = int(np.prod(expected))
+    if array.shape != expected and not (array.ndim == 1 and array.size == size):
+        raise click.BadParameter(
+            f"'{path}' has shape {list(array.shape)}, but the parameter has shape "
+            f"{list(expected)} ({size} components)", param_hint=option)
+
+
+def upload_values(client: mc.Client, scene: str, specs: Sequence[pb.ParameterSpec],
+                  truths: Sequence[pb.ParameterValue]) -> None:
+    """Checks each --init/--truth .npy file against its parameter's shape, then uploads it
+    and names the blob in its place."""
+    files = [(s, "initial_blob", "--init") for s in specs if s.initial_blob] + \
+            [(t, "blob", "--truth") for t in truths if t.blob]
+    if not files:
+        return
+    shapes = {p.key: list(p.shape) for p in client.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=scene)).parameters}
+    for message, attribute, option in files:
+        path = getattr(message, attribute)
+        if not os.path.isfile(path):
+            raise click.BadParameter(f"'{path}' is not a file", param_hint=option)
+        if message.key in shapes:  # an unknown key is the daemon's to name
+            check_npy(path, shapes[message.key], option)
+        setattr(message, attribute, mc.blob_name(mc.upload_file(client, path, uploading)))
 
 
 def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]]
@@ -92,8 +131,9 @@ def _is_blob(image: str) -> bool:
               help="learning rate of one parameter (KEY=RATE), or of all without their own")
 @click.option("--range", "ranges", multiple=True, type=Range(),
               help="legal range of a parameter; a bound may be left empty")
-@click.option("--init", "inits", multiple=True, type=Values(),
-              help="start value of a parameter instead of the scene's")
+@click.option("--init", "inits", multiple=True, type=Values(npy=True),
+              help="start value of a parameter instead of the scene's: KEY=v1,v2,... or "
+                   "KEY=@values.npy (textures, grids)")
 @click.option("--loss", type=click.Choice(sorted(LOSSES), case_sensitive=False),
               help="image loss [daemon default: mse]")
 @click.option("--schedule", type=click.Choice(sorted(SCHEDULES), case_sensitive=False),
@@ -109,8 +149,9 @@ def _is_blob(image: str) -> bool:
 @click.option("--clamp", is_flag=True, help="clamp render and reference to [0, 1] (LDR)")
 @click.option("--resolution", type=int,
               help="film height in pixels; widths follow each reference's aspect ratio")
-@click.option("--truth", "truths", multiple=True, type=Values(),
-              help="known true value, KEY=v1,v2,...: each iteration records the error")
+@click.option("--truth", "truths", multiple=True, type=Values(npy=True),
+              help="known true value, KEY=v1,v2,... or KEY=@values.npy: each iteration "
+                   "records the error (RMSE, PSNR; 'matopt job history' shows it)")
 @click.option("--image-error-every", type=int,
               help="every N iterations, the image RMSE at higher spp (off the clock)")
 @click.option("--from", "from_job", metavar="JOB", type=JOB,
@@ -139,11 +180,13 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
              "image_error_every": image_error_every}
     spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
                       **{k: v for k, v in given.items() if v is not None})
-    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values) for t in truths)
+    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "")
+                             for t in truths)
     for _, image in refs:
         if not _is_blob(image) and not os.path.isfile(image):
             raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
     client = connected()
+    upload_values(client, scene, spec.parameters, spec.ground_truth)
     spec.references.extend(upload_references(client, refs))
     created = client.jobs.CreateJob(pb.CreateJobRequest(
         spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
@@ -272,8 +315,28 @@ _control("pause", "PauseJob", pb.PauseJobRequest,
          "next iteration boundary: 'matopt job watch' shows it.")
 _control("resume", "ResumeJob", pb.ResumeJobRequest,
          "Resume a paused or interrupted job.")
-_control("cancel", "CancelJob", pb.CancelJobRequest,
-         "Cancel a job (at its next iteration).\n\nIts results so far are kept.")
+@job.command("cancel")
+@click.argument("name", metavar="JOB", type=JOB)
+@json_option
+def cancel(name: str, as_json: bool) -> None:
+    """Cancel a job (at its next iteration).
+
+    Its results so far are kept: a running job stops at its next iteration boundary, then
+    renders its result images (one sensor at a time, other jobs running in between) and
+    ends CANCELLED. Prints the job's state and, while the cancel is pending, what happens
+    next.
+    """
+    j = connected().jobs.CancelJob(pb.CancelJobRequest(name=name))
+    if as_json:
+        emit_json(j)
+        return
+    pending = next((n.removeprefix("end phase: ") for n in j.notes
+                    if n.startswith("end phase: ")), None)
+    if j.state in (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED) or pending is None:
+        click.echo(f"{j.name} {mc.state_name(j.state)}")
+    else:
+        click.echo(f"{j.name} {mc.state_name(j.state)}: {pending}; "
+                   f"'matopt job watch {j.name}' follows it to the end")
 
 
 @job.command()
@@ -294,14 +357,19 @@ def delete(name: str) -> None:
 def history(name: str, as_json: bool) -> None:
     """Show the loss per iteration.
 
-    With the optimizing time (paused and queued time excluded) at which each was reached.
+    With the optimizing time (paused and queued time excluded) at which each was reached and,
+    when the job has ground truth (--truth), each parameter's error against it: RMSE, PSNR
+    and, for textures and grids, the correlation with the truth per channel.
     """
     response = connected().jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
     if as_json:
         emit_json(response)
         return
-    table(["ITERATION", "SECONDS", "LOSS"],
-          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)] for r in response.iterations])
+    keys = list(dict.fromkeys(e.key for r in response.iterations for e in r.errors))
+    table(["ITERATION", "SECONDS", "LOSS"] + [f"ERROR {k}" for k in keys],
+          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)]
+           + [next((parameter_error(e) for e in r.errors if e.key == k), "") for k in keys]
+           for r in response.iterations])
 
 
 @job.command("export")

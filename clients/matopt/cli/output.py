@@ -71,6 +71,16 @@ def number(value: float) -> str:
     return f"{short_float(value):.6g}"
 
 
+def parameter_error(e) -> str:
+    """A ParameterError as people read it: RMSE, PSNR and, for textures and grids, the
+    correlation with the truth per channel ("r 0.98/0.97/0.99")."""
+    text = f"rmse {number(e.rmse)}, psnr {e.psnr:.1f} dB" if math.isfinite(e.psnr) else \
+        f"rmse {number(e.rmse)}, exact"
+    if len(e.correlation):
+        text += ", r " + "/".join("nan" if math.isnan(c) else f"{c:.3f}" for c in e.correlation)
+    return text
+
+
 def size(n: int) -> str:
     """A byte count as people read it: 812 B, 3.4 KiB, 2.9 MiB, 20.0 GiB."""
     if n < 1024:

@@ -69,7 +69,8 @@ class ValueArg:
 
 
 class Values(click.ParamType):
-    """``KEY=v1,v2,...`` (flat components), or with ``npy`` also ``KEY=@file.npy``."""
+    """``KEY=v1,v2,...`` (flat components), or with ``npy`` also ``KEY=@file.npy`` (or
+    ``KEY=file.npy``): a texture's or grid's values do not fit on a command line."""
 
     def __init__(self, npy: bool = False) -> None:
         self.npy = npy
@@ -79,8 +80,8 @@ class Values(click.ParamType):
         if isinstance(value, ValueArg):
             return value
         key, rest = _split(str(value), "KEY=V1,V2,...", param, ctx, self)
-        if rest.startswith("@") and self.npy:
-            return ValueArg(key, npy=rest[1:])
+        if self.npy and (rest.startswith("@") or rest.lower().endswith(".npy")):
+            return ValueArg(key, npy=rest.removeprefix("@"))
         parts = [p for p in rest.replace(" ", "").split(",") if p]
         if not parts:
             self.fail(f"'{value}' gives no values", param, ctx)

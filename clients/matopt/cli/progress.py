@@ -13,7 +13,7 @@ import click
 import grpc
 
 from matopt import client as mc
-from matopt.cli.output import best, note, number
+from matopt.cli.output import best, note, number, parameter_error
 from matopt_api.v1 import matopt_pb2 as pb
 
 BAR_WIDTH = 24
@@ -107,10 +107,16 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
             text += f", best {best(job)}"
         if job.error:
             text += f": {job.error}"
+        phase = next((n for n in job.notes if n.startswith("end phase: ")), None)
+        if phase and job.state == pb.JOB_STATE_RUNNING:  # e.g. rendering result images 3/8
+            text += f" ({phase})"
         return text
     record = event.iteration
     of = f"/{total}" if total else ""
-    return f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+    text = f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+    for e in record.errors:  # with ground truth
+        text += f"; {e.key}: {parameter_error(e)}"
+    return text
 
 
 def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:

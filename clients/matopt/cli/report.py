@@ -35,6 +35,7 @@ PLOT_HINT = "plots need matplotlib: install matopt[plot] (pip install 'matopt[pl
 CSV_NAME = "report.csv"
 LOSS_PNG, ERRORS_PNG, IMAGE_ERROR_PNG = "loss.png", "parameter_error.png", "image_error.png"
 ERROR_PREFIX = "relative_error:"  # CSV column of one parameter's relative error
+PSNR_PREFIX = "psnr:"             # ... and of its PSNR in dB (from the daemon only)
 LINESTYLES = ("-", "--", ":", "-.")
 
 
@@ -47,6 +48,7 @@ class Row:
     loss: float
     image_error: float | None = None
     errors: dict[str, float] = field(default_factory=dict)  # key -> relative error
+    psnr: dict[str, float] = field(default_factory=dict)    # key -> PSNR (dB)
 
 
 @dataclass
@@ -88,7 +90,8 @@ def record_row(record: pb.IterationRecord, truth: dict[str, list[float]]) -> Row
         errors = {key: relative_error(values[key], t) for key, t in truth.items()
                   if key in values}
     image_error = record.image_error if record.HasField("image_error") else None
-    return Row(record.iteration, record.seconds, record.loss, image_error, errors)
+    return Row(record.iteration, record.seconds, record.loss, image_error, errors,
+               {e.key: e.psnr for e in record.errors})
 
 
 def default_label(job: pb.Job) -> str:
@@ -128,7 +131,8 @@ def _cell(value: float | None) -> str:
 
 
 def write_csv(series: Sequence[Series], path: Path) -> Path:
-    """One row per run and iteration; one ``relative_error:<key>`` column per parameter.
+    """One row per run and iteration; ``relative_error:<key>`` and ``psnr:<key>`` columns per
+    parameter (PSNR in dB, as ``ParameterError.psnr`` defines it).
 
     float32 values (loss, errors) are written as the shortest decimal that reads back as the
     same float32; seconds in full. A missing value is an empty cell.
@@ -138,7 +142,7 @@ def write_csv(series: Sequence[Series], path: Path) -> Path:
     with open(path, "w", newline="") as f:
         out = csv.writer(f)
         out.writerow(["job", "label", "iteration", "seconds", "loss", "image_error",
-                      *(ERROR_PREFIX + k for k in keys)])
+                      *(ERROR_PREFIX + k for k in keys), *(PSNR_PREFIX + k for k in keys)])
         for s in series:
             for r in s.rows:
                 out.writerow([s.job, s.label, r.iteration, repr(r.seconds),
@@ -146,6 +150,8 @@ def write_csv(series: Sequence[Series], path: Path) -> Path:
                               _cell(None if r.image_error is None
                                     else mc.short_float(r.image_error)),
                               *(_cell(mc.short_float(r.errors[k]) if k in r.errors else None)
+                                for k in keys),
+                              *(_cell(mc.short_float(r.psnr[k]) if k in r.psnr else None)
                                 for k in keys)])
     return path
 

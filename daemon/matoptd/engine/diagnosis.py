@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..range_notes import bound_notes
 from .parameters import ROUGHNESS_MIN
 
 
@@ -23,12 +24,7 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
                          "(0.001): a smoother surface would look the same, so the truth may "
                          "be anywhere below; compare alpha, not roughness")
             continue
-        for bound, name in ((s.lo, "min"), (s.hi, "max")):
-            at = int(np.sum(np.isclose(v, bound, rtol=0, atol=1e-6))) if np.isfinite(bound) else 0
-            if at:
-                notes.append(f"{key}: {at} component(s) ended at the {name} {bound:g}; the "
-                             "truth may lie outside the range, or these images do not "
-                             "constrain it")
+        notes += bound_notes(key, v, s.lo, s.hi)
     for key, path in (trajectories or {}).items():
         s = settings.get(key)
         moving = still_moving(path, log=s is not None and s.log)

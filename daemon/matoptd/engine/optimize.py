@@ -37,6 +37,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import parameters
+from ..truth import ParameterError, parameter_error
 from .integrator import choose
 from .losses import LOSSES
 
@@ -80,6 +81,7 @@ class Config:
     step_per_sensor: bool = False
     clamp: bool = False
     truth: dict[str, np.ndarray] = field(default_factory=dict)
+    channels: dict[str, int] = field(default_factory=dict)  # of textures and grids, for errors
     image_error_every: int = 0
     image_error_spp: int = 64
 
@@ -91,7 +93,7 @@ class Step:
     values: dict[str, np.ndarray]  # theta_i (all selected parameters)
     done: bool
     stop_reason: str = ""
-    errors: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    errors: dict[str, ParameterError] = field(default_factory=dict)
     image_error: float | None = None
 
 
@@ -110,14 +112,6 @@ def _seed(base: int, iteration: int, slot: int, slots: int) -> int:
 
 LOG_FLOOR = 1e-6    # log(0) is -inf: a start at 0 starts at this instead
 LATENT_LIMIT = 40.0  # |u| bound for log parameters: e^40 ~ 2e17, far past any scene
-
-
-def parameter_error(value: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
-    """(max |v - t|, rmse, rmse / rms(t)); relative falls back to rmse when the truth is 0."""
-    d = value.astype(np.float64) - truth
-    rmse = float(np.sqrt(np.mean(d * d)))
-    scale = float(np.sqrt(np.mean(truth.astype(np.float64) ** 2)))
-    return float(np.max(np.abs(d))), rmse, rmse / scale if scale > 0 else rmse
 
 
 class Optimization:
@@ -226,7 +220,8 @@ class Optimization:
         self.elapsed += time.perf_counter() - start
         out = Step(i, loss, theta, last or reached,
                    "min_error" if reached else "iterations" if last else "",
-                   {k: parameter_error(theta[k], t) for k, t in c.truth.items() if k in theta})
+                   {k: parameter_error(theta[k], t, c.channels.get(k, 0))
+                    for k, t in c.truth.items() if k in theta})
         if c.image_error_every and (i % c.image_error_every == 0 or out.done):
             out.image_error = self.image_error(theta)  # off the clock
         return out

@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import engine_api as api
+from .. import engine_api as api, film_filter
 from . import diagnosis, images, parameters, scene as scenes, scene_export
 from .optimize import Best, Config, Optimization, Reference, Setting
 
@@ -160,12 +160,17 @@ class MitsubaEngine:
         keys = [p.key for p in settings.parameters]
         loaded = self.load(settings.scene, keys)
         notes: list[str] = []
+        if settings.resolution:
+            loaded = self._scale_filters(settings, loaded, keys, notes)
         refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
                                               for r in settings.references}, notes)
+        listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
+        channels = {k: int(listed[k].shape[-1]) for k in keys if k in listed
+                    and listed[k].kind in ("texture", "volume_grid") and listed[k].shape}
         config = Config(loss=settings.loss, iterations=settings.iterations,
                         min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
                         cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
-                        clamp=settings.clamp, truth=dict(settings.truth),
+                        clamp=settings.clamp, truth=dict(settings.truth), channels=channels,
                         image_error_every=settings.image_error_every,
                         image_error_spp=settings.image_error_spp)
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
@@ -182,13 +187,59 @@ class MitsubaEngine:
                 raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         else:
             opt.elapsed += time.perf_counter() - began
-        listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in opt.settings}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in opt.settings}
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
                              shapes, kinds, settings.max_samples)
         return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
                            list(opt.references), opt.notes, shapes, kinds)
+
+    def _scale_filters(self, settings: api.JobSettings, loaded: mi.Scene, keys: list[str],
+                       notes: list[str]) -> mi.Scene:
+        """The scene again, with the reconstruction filter of each sensor whose film height
+        ``settings.resolution`` changes scaled by the same ratio (``film_filter``); a filter
+        Mitsuba does not let be sized is left as it is, with a note."""
+        sizes: dict[str, film_filter.Scaled] = {}
+        for index in sorted({r.sensor for r in settings.references}):
+            sensor = loaded.sensors()[index]
+            height = int(sensor.film().crop_size()[1])
+            ratio = settings.resolution / height
+            rfilter = sensor.film().rfilter()
+            name = str(rfilter).split("[")[0]
+            plugin = film_filter.PLUGINS.get(name, name)
+            scaled = film_filter.scale(plugin, rfilter.radius(), ratio)
+            if ratio == 1 or plugin == "box":  # a box filter is one pixel at any size
+                continue
+            if scaled is None:
+                notes.append(f"warning: sensor {index} renders at {ratio:g}x the scene's film "
+                             f"height, but its {plugin} reconstruction filter has a fixed "
+                             f"radius of {rfilter.radius():g} px, which Mitsuba does not let "
+                             "be scaled: renders blur differently from references made at the "
+                             "scene's size; use a gaussian or tent filter, or references at "
+                             "this resolution")
+            else:
+                sizes[sensor.id()] = scaled
+                notes.append(f"sensor {index}: {plugin} reconstruction filter {scaled.property} "
+                             f"scaled from {scaled.before:g} to {scaled.after:g} px ({ratio:g}x,"
+                             " with the film height), so renders blur as at the scene's size")
+        if not sizes:
+            return loaded
+        main = self.layout(settings.scene)
+        xml, missing = film_filter.rewrite(main.read_bytes(), sizes)
+        for sensor_id in missing:
+            notes.append(f"warning: the film of sensor '{sensor_id}' is not written in the "
+                         "main XML, so its reconstruction filter was not scaled with the film")
+        if len(missing) == len(sizes):
+            return loaded
+        path = main.parent / f".filters-{hashlib.sha256(xml).hexdigest()[:16]}.xml"
+        if not path.exists():
+            fd, tmp = tempfile.mkstemp(dir=main.parent, prefix=".write-")
+            with os.fdopen(fd, "wb") as f:
+                f.write(xml)
+            os.replace(tmp, path)
+        del loaded
+        return scenes.load(path, settings.scene.overrides, settings.scene.display, keys,
+                           root=self.cache / "scenes" / settings.scene.key)
 
     def _run(self, job: str) -> Run:
         try:
@@ -218,16 +269,21 @@ class MitsubaEngine:
     def checkpoint(self, job: str) -> bytes:
         return self._run(job).opt.checkpoint()
 
-    def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool
-               ) -> api.Finished:
+    def result_images(self, job: str, sensor: int) -> dict[str, list[api.Image]]:
+        """One sensor's result images, per result ("best", "last"): initial, optimized,
+        reference and |optimized - reference|. One call per sensor, so that the daemon can
+        let other jobs run between them (and a cancel end promptly)."""
+        run = self._run(job)
+        return _sensor_images(run, _chosen(run.opt), sensor)
+
+    def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
+               render: bool = True) -> api.Finished:
         """Results for the best and the last iteration run (none before the first), then the
-        diagnosis. Renders in results are off the job's clock."""
+        diagnosis. Renders in results are off the job's clock. Without ``render`` the results
+        hold no per-sensor images (``result_images`` made them) but still the textures."""
         run = self._run(job)
         opt = run.opt
-        chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
-        if opt.last.iteration >= 0:
-            chosen.append(("last", opt.last))
-        results = _results(run, chosen)
+        results = _results(run, _chosen(opt), render)
         opt.flush()
         paths: dict[str, list[list[float]]] = {}
         for record in history:
@@ -269,11 +325,14 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
     size. NaN/Inf pixels are masked out of every loss and counted."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
+    # Sizes before any resize: sensors may share one film, which the first resize changes
+    # for all of them, and each sensor's note compares with what its scene declared.
+    declared = [tuple(int(x) for x in s.film().crop_size()) for s in sensors]
     refs = {}
     for index, (path, name) in sorted(files.items()):
         picture = images.read_reference(str(path), name)
         film = sensors[index].film().crop_size()
-        width, height = api.reference_film(settings.resolution or int(film[1]),
+        width, height = api.reference_film(settings.resolution or declared[index][1],
                                            picture.shape[1], picture.shape[0])
         if (width, height) != (int(film[0]), int(film[1])):
             key = _film_key(params, sensors[index])
@@ -282,8 +341,12 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
                                        f"{width}x{height} for reference '{name}'")
             params[key] = mi.ScalarVector2u(width, height)
             params.update()
+        if (width, height) != declared[index]:
             notes.append(f"sensor {index} renders {width}x{height} (film was "
-                         f"{int(film[0])}x{int(film[1])}) to follow reference '{name}'")
+                         f"{declared[index][0]}x{declared[index][1]}) to follow "
+                         + (f"--resolution {settings.resolution} and " if settings.resolution
+                            else "") + f"reference '{name}' ({picture.shape[1]}x"
+                         f"{picture.shape[0]})")
         picture = images.fit(picture, (width, height))
         valid = np.isfinite(picture).all(axis=2, keepdims=True)
         if not valid.all():
@@ -295,27 +358,43 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
     return refs
 
 
-def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
-    """For each chosen iteration: the renders per sensor (initial, optimized, reference,
-    |optimized - reference|), optimized textures as images, and the optimized scene. Initial
-    and reference images are made once and shared."""
+def _chosen(opt: Optimization) -> list[tuple[str, Best]]:
+    """The iterations a job's results show: the best, and the last run (none before the
+    first)."""
+    chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
+    if opt.last.iteration >= 0:
+        chosen.append(("last", opt.last))
+    return chosen
+
+
+def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
+                   ) -> dict[str, list[api.Image]]:
+    """One sensor's renders per chosen iteration (initial, optimized, reference,
+    |optimized - reference|); initial and reference are made once and shared."""
     opt = run.opt
-    shared, spp = {}, {}
-    for sensor, ref in opt.references.items():
-        reference = np.array(ref.image, dtype=np.float32)
-        spp[sensor] = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1],
-                                     run.max_samples)
-        shared[sensor] = (reference, [image(opt.render(opt.initial, sensor, spp[sensor]),
-                                            sensor, "initial"),
-                                      image(reference, sensor, "reference")])
+    ref = opt.references[sensor]
+    reference = np.array(ref.image, dtype=np.float32)
+    spp = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1], run.max_samples)
+    first = image(opt.render(opt.initial, sensor, spp), sensor, "initial")
+    ref_image = image(reference, sensor, "reference")
+    out = {}
+    for which, it in chosen:
+        optimized = opt.render(it.values, sensor, spp)
+        error = np.abs(optimized - reference) * ref.mask()
+        out[which] = [first, image(optimized, sensor, "optimized"), ref_image,
+                      image(error, sensor, "error")]
+    return out
+
+
+def _results(run: Run, chosen: list[tuple[str, Best]], render: bool = True
+             ) -> list[api.Result]:
+    """For each chosen iteration: the renders per sensor (with ``render``), optimized
+    textures as images, and the optimized scene."""
+    opt = run.opt
+    per_sensor = [_sensor_images(run, chosen, s) for s in opt.references] if render else []
     out = []
     for which, it in chosen:
-        images_ = []
-        for sensor, (reference, (first, ref_image)) in shared.items():
-            optimized = opt.render(it.values, sensor, spp[sensor])
-            error = np.abs(optimized - reference) * opt.references[sensor].mask()
-            images_ += [first, image(optimized, sensor, "optimized"), ref_image,
-                        image(error, sensor, "error")]
+        images_ = [i for sensor in per_sensor for i in sensor[which]]
         for key, v in it.values.items():
             shape = run.shapes[key]
             if run.kinds.get(key) == "texture" and len(shape) == 3:
