@@ -53,7 +53,7 @@ def cornell(stubs):
 
 def recover_walls(stubs, scene, ref, resolution: int = 0, **spec) -> pb.Job:
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=40, spp=8, min_error=0, resolution=resolution,
+        scene=scene.name, iterations=40, spp=8, min_error=0, film_height=resolution,
         references=[pb.Reference(blob=ref.exr_blob, filename="ref64.exr")],
         parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS],
         **spec)))
@@ -72,7 +72,7 @@ def test_half_resolution_scales_the_filter_and_recovers_the_walls(stubs, cornell
     notes = "\n".join(half.notes)
     # The box's film has Mitsuba's default gaussian (stddev 0.5 px at 64 px): 0.25 px at 32.
     assert "sensor 0: gaussian reconstruction filter stddev scaled from 0.5 to 0.25 px" in notes
-    assert "sensor 0 renders 32x32 (film was 64x64) to follow --resolution 32" in notes
+    assert "sensor 0 renders 32x32 (film was 64x64) to follow film height 32" in notes
     for job in (full, half):
         got = walls(stubs, job)
         for key in WALLS:
@@ -91,7 +91,7 @@ def test_bound_and_clip_notes(stubs, cornell):
     red = walls(stubs, first)["red.reflectance.value"][0]
     assert red > 0.35
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(
-        spec=pb.JobSpec(scene=scene.name, iterations=20, spp=4, min_error=0, resolution=32,
+        spec=pb.JobSpec(scene=scene.name, iterations=20, spp=4, min_error=0, film_height=32,
                         references=[pb.Reference(blob=ref.exr_blob)],
                         parameters=[pb.ParameterSpec(key="red.reflectance.value", max=0.3)]),
         initial_from_job=first.name, initial_from_which=pb.WHICH_LAST))
@@ -208,7 +208,7 @@ def long_job(stubs, sensors: int, resolution: int = 0) -> str:
     scene = create_scene(stubs, files, "ring.xml")
     refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=16)).images
     return stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=100000, spp=2, resolution=resolution,
+        scene=scene.name, iterations=100000, spp=2, film_height=resolution,
         references=[pb.Reference(blob=r.exr_blob, filename=f"ring{r.sensor}.exr")
                     for r in refs],
         parameters=[pb.ParameterSpec(key="ball.bsdf.reflectance.value",

@@ -344,7 +344,7 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
         if (width, height) != declared[index]:
             notes.append(f"sensor {index} renders {width}x{height} (film was "
                          f"{declared[index][0]}x{declared[index][1]}) to follow "
-                         + (f"--resolution {settings.resolution} and " if settings.resolution
+                         + (f"film height {settings.resolution} and " if settings.resolution
                             else "") + f"reference '{name}' ({picture.shape[1]}x"
                          f"{picture.shape[0]})")
         picture = images.fit(picture, (width, height))
