@@ -218,10 +218,9 @@ class Scenes(rpc.ScenesServicer):
                 overrides, user)
             display = request.display_name or main.rsplit("/", 1)[-1]
         loadable = scenes.loadable_path(main)
-        inputs = convert.scene_input(
-            loadable,
-            {**paths, loadable: self.store.put_blob(prepared.xml, user).removeprefix("blobs/")},
-            prepared.overrides, main)
+        rewritten = {path: self.store.put_blob(xml, user).removeprefix("blobs/")
+                     for path, xml in {**prepared.includes, loadable: prepared.xml}.items()}
+        inputs = convert.scene_input(loadable, {**paths, **rewritten}, prepared.overrides, main)
         with self.tasks.hold(user):
             described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
         scene = pb.Scene(name=f"scenes/{uuid.uuid4().hex[:12]}", display_name=display,

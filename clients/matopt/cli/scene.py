@@ -23,7 +23,7 @@ def scene() -> None:
 
 
 def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, str],
-                 display_name: str = "") -> pb.Scene:
+                 display_name: str = "", root: str | None = None) -> pb.Scene:
     """Uploads the bundle (none for the built-in Cornell box) and creates the scene.
 
     A fresh request_id per call lets the daemon recognise a retried request as the same one.
@@ -31,7 +31,7 @@ def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, 
     request = pb.CreateSceneRequest(overrides=overrides, request_id=str(uuid.uuid4()),
                                     display_name=display_name)
     if scene_xml:
-        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading)
+        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading, root)
         request.main_file = main_file
         request.files.extend(files)
     return client.scenes.CreateScene(request)
@@ -43,17 +43,24 @@ def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, 
 @click.option("--set", "overrides", multiple=True, type=Assignment(),
               help="an XML <default> value, e.g. --set resx=256 (repeatable)")
 @click.option("--name", "display_name", default="", help="display name (default: file name)")
+@click.option("--root", type=click.Path(exists=True, file_okay=False),
+              help="the folder the scene's file names are relative to (the directory Mitsuba "
+                   "was run from) [default: found]")
 @json_option
 def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, str], ...],
-         display_name: str, as_json: bool) -> None:
+         display_name: str, root: str | None, as_json: bool) -> None:
     """Load a scene; prints its name.
 
-    Uploads SCENE.xml and every file it references (relative to its directory), except
-    those the daemon already has.
+    Uploads SCENE.xml and every file it references, except those the daemon already has.
+    A file name is looked up as Mitsuba does: from the folder of the XML naming it, then from
+    the root (--root; else the XML's folder, the current directory or a parent folder of the
+    XML, the first under which every file is found). '\\' separates folders as '/' does.
     """
     if bool(scene_xml) == cornell_box:
         raise click.UsageError("give either SCENE.xml or --cornell-box")
-    created = create_scene(connected(), scene_xml, dict(overrides), display_name)
+    if root and cornell_box:
+        raise click.UsageError("--root goes with SCENE.xml")
+    created = create_scene(connected(), scene_xml, dict(overrides), display_name, root)
     for warning in created.warnings:
         warn(warning)
     if as_json:
