@@ -19,6 +19,7 @@ import grpc
 from google.protobuf.message import Message
 
 from matoptd import __version__
+from matopt_api import costs
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
@@ -429,6 +430,9 @@ class Jobs(rpc.JobsServicer):
         self._admit_another(user)  # again: other requests of this user may have come first
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.QUEUED,
                      owner=user, best_iteration=-1)
+        job.notes.extend(costs.parameter_cost(p.key, params[p.key].shape,
+                                              estimate.samples_per_iteration)
+                         for p in spec.parameters if costs.is_large(params[p.key].shape))
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)

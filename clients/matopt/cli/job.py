@@ -11,7 +11,7 @@ import click
 
 from matopt import client as mc
 from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
-                                uploading)
+                                uploading, warn)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
@@ -147,6 +147,8 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
     created = client.jobs.CreateJob(pb.CreateJobRequest(
         spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
         initial_from_which=WHICH[from_which.lower()]))
+    for line in created.notes:  # what the daemon saw fit to say at once: large parameters
+        warn(line)
     if as_json and not wait:
         emit_json(created)
     elif not as_json:

@@ -13,6 +13,7 @@ from matopt.cli.output import (emit_json, fields, json_option, message_dict, not
 from matopt.cli.params import SCENE, Assignment, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
+from matopt_api import costs
 from matopt_api.v1 import matopt_pb2 as pb
 
 
@@ -132,12 +133,25 @@ def params(name: str, as_json: bool) -> None:
     if as_json:
         emit_json(pb.ListSceneParametersResponse(parameters=parameters))
         return
-    noted = any(p.discontinuous for p in parameters)  # gradients need a projective integrator
+    notes = [parameter_note(p) for p in parameters]
+    noted = any(notes)
     table(["KEY", "KIND", "SHAPE", "VALUE", "MIN", "MAX", "LR"] + (["NOTE"] if noted else []),
           [[p.key, mc.enum_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)),
             values(p.value), number(p.min), number(p.max), number(p.default_learning_rate)]
-           + (["discontinuous" if p.discontinuous else ""] if noted else [])
-           for p in parameters])
+           + ([n] if noted else []) for p, n in zip(parameters, notes)])
+    for p in parameters:
+        if costs.is_large(p.shape):
+            note(costs.parameter_cost(p.key, p.shape))
+
+
+def parameter_note(p: pb.Parameter) -> str:
+    """What to know before selecting it: gradients that need a projective integrator, and the
+    memory of a large one (its full cost is printed below the table)."""
+    words = ["discontinuous"] if p.discontinuous else []
+    if costs.is_large(p.shape):
+        size = costs.value_count(p.shape) * costs.DEVICE_BYTES_PER_VALUE
+        words.append(f"large: {costs.format_size(size)} to optimize")
+    return ", ".join(words)
 
 
 def parameter_values(client: mc.Client, args) -> list[pb.ParameterValue]:
