@@ -294,9 +294,13 @@ def closure(main: str, read: Callable[[str], bytes | str | None],
 
             def refer(name: str, folders: list[str], plugin: str) -> Reference:
                 # A '\' brought in by a parameter separates folders all the same.
-                effective = (attr(name) or "").replace("\\", "/")
+                value = attr(name) or ""
+                effective = value.replace("\\", "/")
                 raw = elem.get(name, "")
-                written = effective if "$" in raw else raw  # for messages: as the user wrote it
+                written = value if "$" in raw else raw  # for messages: as the user wrote it
+                if "$" in effective:  # written out, Mitsuba would substitute it once more
+                    raise BundleError(f"{where}: file name '{written}' has a '$': rename the "
+                                      "file")
                 path, tried = _lookup(xml, effective, written, [*folders, ROOT], exists)
                 if rewrite is not None:
                     elem.set(name, effective)
