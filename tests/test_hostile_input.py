@@ -7,6 +7,7 @@ daemon's worker process, never by this one.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import struct
@@ -144,13 +145,20 @@ def test_absolute_and_parent_paths_are_refused_however_written(stubs, written):
     assert "'scene.xml'" in details
 
 
-def test_included_file_cannot_use_windows_separators(stubs):
-    """Only the main XML is rewritten for Mitsuba; in an included one a '\\' would be part of
-    the file name on Linux, which is not what the bundle holds."""
-    files = {"scene.xml": scene('<include filename="inc.xml"/>'),
-             "inc.xml": scene(mesh("obj", "meshes\\quad.obj")), "meshes/quad.obj": b""}
-    assert "has a '\\', which Mitsuba on Linux reads as part of a file name" in refused(
-        stubs, files)
+def test_included_file_may_use_windows_separators(stubs):
+    """A '\\' separates folders in every XML: the daemon hands Mitsuba a rewritten copy of the
+    included file, while the uploaded one stays as it was."""
+    shape = mesh("obj", "meshes\\quad.obj")
+    files = {"scene.xml": scene('<include filename="parts\\inc.xml"/>'),
+             "parts/inc.xml": f'<scene version="3.0.0">{shape}</scene>'.encode(),
+             "meshes/quad.obj": QUAD_OBJ.encode()}
+    created = create_scene(stubs, files, "scene.xml")
+    assert {f.path for f in created.files} == set(files)
+    assert {f.sha256 for f in created.files} == {hashlib.sha256(d).hexdigest()
+                                                 for d in files.values()}
+    keys = [p.key for p in stubs.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=created.name)).parameters]
+    assert "mesh.vertex_positions" in keys
 
 
 def test_plugins_cannot_come_from_the_bundle(stubs):

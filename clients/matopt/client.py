@@ -23,6 +23,8 @@ from matopt_api import bundle, enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
+from . import scene_files
+
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 CHUNK_BYTES = 1024 * 1024  # the API's chunk limit for blob streams
 PROBE_TIMEOUT_S = 5.0  # the first call: long enough for a remote daemon, short enough to wait out
@@ -284,46 +286,32 @@ def upload_file(client: Client, path: str | os.PathLike,
     return upload_files(client, [path], on_upload)[0]
 
 
-def bundle_files(main_xml_path: str | os.PathLike,
-                 overrides: dict[str, str] | None = None) -> tuple[str, dict[str, Path]]:
+def bundle_files(main_xml_path: str | os.PathLike, overrides: dict[str, str] | None = None,
+                 root: str | os.PathLike | None = None) -> tuple[str, dict[str, Path]]:
     """The bundle of a scene on disk: its main file's bundle path and every file it needs.
 
-    The root is the main XML's directory, as on the server, and files are found by the same
-    rules (``matopt_api.bundle``: includes, meshes, textures, spectra, ...), so every file the
-    daemon will look for is uploaded. A referenced file that does not exist is reported here,
-    with the XML that names it, rather than by the daemon after an upload.
+    Files are found by the daemon's rules (``matopt_api.bundle``: includes, meshes, textures,
+    spectra, ...) from the bundle's root: ``root`` (the folder the scene's file names are
+    relative to), else the first folder under which every file is found (``scene_files``).
+    Missing files are reported here, all at once, rather than by the daemon after an upload.
     """
-    main = Path(main_xml_path)
-    if not main.is_file():
-        raise ClientError(f"scene file '{main}' does not exist")
-    root = main.absolute().parent
-    main_file = bundle.normalize(main.name)
-
-    def read(path: str) -> bytes | None:
-        return (root / path).read_bytes() if (root / path).is_file() else None
-
-    found = bundle.closure(main_file, read, overrides=overrides,
-                           exists=lambda path: (root / path).is_file())
-    files = {main_file: main}
-    for xml, refs in found.items():
-        for ref in refs:
-            disk = root / ref.path
-            if not disk.is_file():
-                raise ClientError(f"file '{ref.written}' referenced by '{xml}' is missing "
-                                  f"(looked for {disk})")
-            files[ref.path] = disk
-    return main_file, files
+    try:
+        return scene_files.find_bundle(main_xml_path, overrides, root)
+    except (scene_files.SceneFilesError, bundle.BundleError) as exc:
+        raise ClientError(str(exc)) from None
 
 
 def upload_bundle(client: Client, main_xml_path: str | os.PathLike,
                   overrides: dict[str, str] | None = None,
-                  on_upload: UploadProgress | None = None) -> tuple[str, list[pb.BundleFile]]:
+                  on_upload: UploadProgress | None = None,
+                  root: str | os.PathLike | None = None) -> tuple[str, list[pb.BundleFile]]:
     """Uploads a scene's bundle; returns what CreateScene needs: main_file and the files.
 
     ``overrides`` are the XML defaults the scene will be created with: a ``$name`` in a
-    filename may select a different file than the XML's default.
+    filename may select a different file than the XML's default. ``root``: as for
+    ``bundle_files``.
     """
-    main_file, files = bundle_files(main_xml_path, overrides)
+    main_file, files = bundle_files(main_xml_path, overrides, root)
     paths = sorted(files)
     digests = upload_files(client, [files[p] for p in paths], on_upload, labels=paths)
     return main_file, [pb.BundleFile(path=p, sha256=d) for p, d in zip(paths, digests)]

@@ -11,6 +11,8 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+from matopt_api.costs import format_size  # noqa: F401  (sizes in messages, shared with clients)
+
 
 @dataclass(frozen=True)
 class Placement:
@@ -128,15 +130,6 @@ def parse_size(text: str) -> int:
     if not m:
         raise ValueError(f"'{text}' is not a size (e.g. 8G, 512M)")
     return int(float(m.group(1)) * 1024 ** " KMGT".index((m.group(2) or " ").upper()))
-
-
-def format_size(n: float) -> str:
-    """Bytes as people read them: 812 B, 3.4 KiB, 8.0 GiB."""
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    raise AssertionError("unreachable")
 
 
 def core_ranges(cores) -> str:

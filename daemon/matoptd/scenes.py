@@ -9,12 +9,17 @@ What happens here, all before a worker sees the scene:
   (``shape_3``: the fourth ``<shape>``). Mitsuba would name them after a memory address
   (``object_140092774243456``), so their parameter keys would change on every load and a job
   would lose its parameters after a restart;
-- Windows ``\\`` separators in file references become ``/``; bitmap textures load as float
-  (8-bit ones carry no gradient); removed integrators (``prb_reparam``) become their successors;
+- file names are written out as Mitsuba is to open them: Windows ``\\`` separators become
+  ``/`` and ``$`` parameters are replaced, in the main XML and in every included one; bitmap
+  textures load as float (8-bit ones carry no gradient); removed integrators (``prb_reparam``)
+  become their successors;
 - ``<default>`` overrides are applied only where the XML declares the default; others are
   reported as warnings, never required.
 The result is a prepared copy of the main XML (``.matopt-scene.xml``, a name no bundle file can
-take) stored as a blob beside the bundle's: a worker gets the scene as digests.
+take) stored as a blob beside the bundle's, and prepared copies of the included XMLs that
+changed, which a worker lays out at their own paths: a worker gets the scene as digests, and
+the user's blobs stay as uploaded. A file name is found as Mitsuba run from the bundle's root
+would find it (``matopt_api.bundle``): the worker's file resolver holds that root too.
 """
 
 from __future__ import annotations
@@ -44,6 +49,9 @@ class PreparedScene:
     xml: bytes                          # the copy of the main XML to hand to Mitsuba
     overrides: dict[str, str]           # the ones the XML declares
     warnings: list[str] = field(default_factory=list)
+    # Included XMLs that Mitsuba gets rewritten (file names written out, float textures), by
+    # bundle path: a worker lays them out in place of the user's files, which stay as uploaded.
+    includes: dict[str, bytes] = field(default_factory=dict)
 
 
 def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
@@ -76,22 +84,36 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     def read(path: str) -> bytes | None:
         return store.blob_file(paths[path]).read_bytes() if path in paths else None
 
-    prepared = prepare(read(main), main, overrides)
+    root, applied, warnings = _prepared_tree(read(main), main, overrides)
+    trees = {main: root}  # every XML, with its file names written out for Mitsuba
     checked: set[tuple[str, str]] = set()
     try:
-        # The main XML as the user wrote it: the rules read it as ``prepare`` rewrote it.
-        for xml, refs in bundle.closure(main, read, prepared.overrides,
-                                        exists=paths.__contains__).items():
+        found = bundle.closure(main, read, applied, exists=paths.__contains__, rewrite=trees)
+        missing = [ref for refs in found.values() for ref in refs if ref.path not in paths]
+        if missing:
+            raise InvalidArgument(missing_message(missing))
+        for refs in found.values():
             for ref in refs:
-                if ref.path not in paths:
-                    raise InvalidArgument(f"'{xml}' references '{ref.written}', which is not in "
-                                          f"the bundle (expected at '{ref.path}')")
                 if ref.plugin in meshes.CHECKS and (ref.plugin, ref.path) not in checked:
                     meshes.CHECKS[ref.plugin](read(ref.path), ref.path)
                     checked.add((ref.plugin, ref.path))
     except (bundle.BundleError, meshes.MeshError) as exc:
         raise InvalidArgument(str(exc)) from None
-    return main, paths, prepared
+    includes = {}
+    for path, tree in trees.items():
+        float_textures(tree)
+        if path != main and _xml(tree) != _xml(bundle.parse_xml(read(path), path)):
+            includes[path] = _xml(tree)
+    return main, paths, PreparedScene(_xml(root), applied, warnings, includes)
+
+
+def missing_message(missing: list[bundle.Reference]) -> str:
+    """One message for every file the bundle lacks, each with the places it was looked for."""
+    lines = [f"'{r.xml}' references '{r.written}', which is not in the bundle (looked for "
+             + ", ".join(f"'{p}'" for p in r.tried) + ")" for r in missing]
+    head = (f"{len(missing)} files the scene names are missing from the bundle:\n  "
+            if len(missing) > 1 else "")
+    return head + "\n  ".join(lines)
 
 
 def _no_file_as_folder(paths: dict[str, str]) -> None:
@@ -111,11 +133,20 @@ def loadable_path(main: str) -> str:
 
 
 def prepare(text: bytes, main: str, overrides: dict[str, str]) -> PreparedScene:
-    """The loadable copy of the main XML (stable ids, ...) and the overrides that apply.
+    """The loadable copy of a main XML that names no files (the built-in Cornell box)."""
+    root, applied, warnings = _prepared_tree(text, main, overrides)
+    float_textures(root)
+    return PreparedScene(_xml(root), applied, warnings)
 
-    ``check_bundle`` follows the file references of the XML as the user wrote it, rewritten
-    only as ``bundle.forward_slashes`` does, with these overrides: nothing else here may change
-    which file a reference names (a default's new value goes in as an override)."""
+
+def _prepared_tree(text: bytes, main: str, overrides: dict[str, str]
+                   ) -> tuple[ET.Element, dict[str, str], list[str]]:
+    """The main XML with stable ids and modern integrators, the overrides that apply, and
+    warnings.
+
+    ``check_bundle`` follows the file references of this tree with these overrides: nothing
+    here may change which file a reference names (a default's new value goes in as an
+    override)."""
     try:
         root = bundle.parse_xml(text, main)
     except bundle.BundleError as exc:
@@ -128,12 +159,12 @@ def prepare(text: bytes, main: str, overrides: dict[str, str]) -> PreparedScene:
                 for k, v in sorted(overrides.items()) if k not in declared]
     replaced, notes = modernize_integrators(root, main)
     overrides = {**replaced, **{k: LEGACY_INTEGRATORS.get(v, v) for k, v in overrides.items()}}
-    warnings += notes
     assign_ids(root)
-    bundle.forward_slashes(root)
-    float_textures(root)
-    xml = ET.tostring(root, encoding="utf-8", xml_declaration=True)
-    return PreparedScene(xml, {k: v for k, v in overrides.items() if k in declared}, warnings)
+    return root, {k: v for k, v in overrides.items() if k in declared}, warnings + notes
+
+
+def _xml(root: ET.Element) -> bytes:
+    return ET.tostring(root, encoding="utf-8", xml_declaration=True)
 
 
 # Removed in Mitsuba 3.5; their successors optimize the same visibility-dependent parameters.

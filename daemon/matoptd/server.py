@@ -21,7 +21,11 @@ from google.protobuf import empty_pb2
 from google.protobuf.message import Message
 
 from matoptd import __version__
+<<<<<<< HEAD
 from matopt_api import enums
+=======
+from matopt_api import costs
+>>>>>>> scenes
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
@@ -233,10 +237,9 @@ class SceneService(rpc.SceneServiceServicer):
                 overrides, user)
             display = request.display_name or main.rsplit("/", 1)[-1]
         loadable = scenes.loadable_path(main)
-        inputs = convert.scene_input(
-            loadable,
-            {**paths, loadable: self.store.put_blob(prepared.xml, user).removeprefix("blobs/")},
-            prepared.overrides, main)
+        rewritten = {path: self.store.put_blob(xml, user).removeprefix("blobs/")
+                     for path, xml in {**prepared.includes, loadable: prepared.xml}.items()}
+        inputs = convert.scene_input(loadable, {**paths, **rewritten}, prepared.overrides, main)
         with self.tasks.hold(user):
             described = await self.runner.task(lambda engine: engine.describe_scene(inputs))
         scene = pb.Scene(name=f"scenes/{uuid.uuid4().hex[:12]}", display_name=display,
@@ -475,7 +478,13 @@ class JobService(rpc.JobServiceServicer):
         self._admit_another(user)  # again: other requests of this user may have come first
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.JOB_STATE_QUEUED,
                      owner=user, best_iteration=-1)
+<<<<<<< HEAD
         job.notes.extend(_clip_notes(settings, restarted, request))
+=======
+        job.notes.extend(costs.parameter_cost(p.key, params[p.key].shape,
+                                              estimate.samples_per_iteration)
+                         for p in spec.parameters if costs.is_large(params[p.key].shape))
+>>>>>>> scenes
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)

@@ -11,11 +11,18 @@ exactly. Files are named by:
   the folders of the files that included the current one, then in the main XML's folder;
 - ``<string name="filename">`` of any plugin (meshes, bitmaps, environment maps, volumes,
   measured BSDFs, curves): opened when the plugin is built, from the main XML's folder;
+- after these, every file name is also looked up from the bundle's root, which stands for the
+  directory Mitsuba was started in (its file resolver holds the current directory): scenes
+  written to be run from a project's root name files relative to it;
 - ``<string name="material">`` of conductors: ``data/ior/<material>.eta.spd`` from the same
   folders as Mitsuba's own data;
 - the ``type`` of every object: Mitsuba loads ``plugins/<type>.so`` through the same lookup,
   as code (so types are plain names, and a bundle holds no ``.so`` file);
 - ``<path value>``: adds a folder to the lookup for the rest of the load. Refused.
+
+File names may separate folders with ``\\`` (scenes written on Windows): it is read as
+``/`` in every XML, also where a ``$name`` brings it in. Mitsuba on Linux would take it as part
+of a name, so the daemon hands Mitsuba every XML with its file names written out as read here.
 
 ``$name`` in any attribute is first replaced by a parameter (the overrides a scene is loaded
 with, then ``<default>`` declarations in the order Mitsuba reads them). Where Mitsuba's result
@@ -51,10 +58,17 @@ RESERVED_PREFIX = ".matopt-"
 MAX_DEPTH = 100
 MAX_INCLUDE_DEPTH = 15   # Mitsuba's own limit (ParserConfig::max_include_depth)
 MAX_INCLUDES = 1000      # includes read in all, counting a file each time it is included
+# The bundle's root folder, tried last for every file name: it stands for the directory
+# Mitsuba was started in, which its file resolver holds.
+ROOT = ""
 
 
 class BundleError(ValueError):
     """A bundle or scene file that cannot be used as it is; the message names the culprit."""
+
+
+class _Outside(BundleError):
+    """A path whose '..' leads out of the bundle."""
 
 
 class _Unclear(BundleError):
@@ -78,7 +92,7 @@ def normalize(path: str, *, origin: str = "") -> str:
             continue
         if part == "..":
             if not parts:
-                raise BundleError(f"path '{path}'{where} leaves the scene bundle")
+                raise _Outside(f"path '{path}'{where} leaves the scene bundle")
             parts.pop()
         elif part.startswith(RESERVED_PREFIX):
             raise BundleError(f"path '{path}'{where} uses the reserved name prefix "
@@ -100,8 +114,9 @@ class Reference:
 
     xml: str       # bundle path of the XML that names it
     written: str   # as written in the XML (after $default substitution)
-    path: str      # bundle path it resolves to
+    path: str      # bundle path it resolves to (where it was first expected, if missing)
     plugin: str = ""  # what reads it: the enclosing object's type, "include" or "spectrum"
+    tried: tuple[str, ...] = ()  # bundle paths looked at, in Mitsuba's order
 
 
 def parse_xml(text: bytes | str, name: str) -> ET.Element:
@@ -165,18 +180,9 @@ def declared_defaults(root: ET.Element) -> dict[str, str]:
     return {e.get("name", ""): e.get("value", "") for e in root.iter("default") if e.get("name")}
 
 
-def forward_slashes(root: ET.Element) -> None:
-    """Windows separators in the main XML's file references, which Mitsuba on Linux would take
-    literally. The daemon hands Mitsuba the main XML with this applied; ``closure`` reads the
-    main XML the same way."""
-    for elem in root.iter():
-        for attr in ("value", "filename"):
-            if elem.get(attr) and _slashed(elem, attr):
-                elem.set(attr, elem.get(attr, "").replace("\\", "/"))
-
-
-def _slashed(elem: ET.Element, attr: str) -> bool:
-    """Whether ``forward_slashes`` rewrites this attribute (before any ``$`` substitution)."""
+def _names_file(elem: ET.Element, attr: str) -> bool:
+    """Whether the attribute holds a file name as written (before any ``$`` substitution):
+    there a ``\\`` separates folders."""
     return attr == "filename" or (attr == "value" and elem.tag == "string"
                                   and elem.get("name") == "filename")
 
@@ -229,7 +235,8 @@ class _File:
 
 def closure(main: str, read: Callable[[str], bytes | str | None],
             overrides: dict[str, str] | None = None,
-            exists: Callable[[str], bool] | None = None) -> dict[str, list[Reference]]:
+            exists: Callable[[str], bool] | None = None,
+            rewrite: dict[str, ET.Element] | None = None) -> dict[str, list[Reference]]:
     """Reads the scene as Mitsuba will, from the main XML through every ``<include>``, and
     returns each XML's file references.
 
@@ -238,95 +245,121 @@ def closure(main: str, read: Callable[[str], bytes | str | None],
     defaults the scene is loaded with: ``$name`` in a filename may then name a different file
     than the XML's own default. As on the daemon, only overrides the main XML declares apply.
 
-    Raises ``BundleError`` for a file reference that leaves the bundle, an included XML that
-    is missing, and anything Mitsuba would read differently from these rules. A reference to
-    a missing non-XML file is returned (at the path it was expected): the caller says which.
+    With ``rewrite``, every XML read is left in it (a tree already there, the main XML's, is
+    used instead of reading the file) with each file name written out as resolved here: '/'
+    separators and no ``$``. Mitsuba then opens the files these rules name.
+
+    Raises ``BundleError`` for a file reference that leaves the bundle and anything Mitsuba
+    would read differently from these rules. A reference to a missing file is returned (at the
+    path it was first expected, with the places ``tried``): the caller says which, and must
+    refuse the scene. After a missing ``<include>`` the walk goes on without it, until the end
+    or the first error, which may be due to the missing file: then what was found is returned.
     """
     main = normalize(main)
     exists = exists or (lambda p: read(p) is not None)
-    root = _read_xml(main, read, f"main file '{main}'")
+    trees = rewrite if rewrite is not None else {}  # each file parsed once, walked each time
+    if main not in trees:
+        trees[main] = _read_xml(main, read, f"main file '{main}'")
+    root = trees[main]
     declared = declared_defaults(root)
     params: dict[str, str | None] = {
         k: (None if "$" in v else v) for k, v in (overrides or {}).items() if k in declared}
     scene_dir = posixpath.dirname(main)
     found: dict[str, list[Reference]] = {}
+    missing_include = False
     stack = [_File(main, [(root, 1, "")], [], (main,))]
-    trees = {main: root}  # a file included several times is walked each time, parsed once
     includes = 0
-    while stack:
-        current = stack[-1]
-        if not current.todo:
-            stack.pop()
-            continue
-        elem, depth, owner = current.todo.pop()
-        xml = current.xml
-        where = f"'{xml}', <{elem.tag}>"
-        if depth > MAX_DEPTH:
-            raise BundleError(f"'{xml}' nests elements more than {MAX_DEPTH} levels deep, "
-                              "counting the elements around its <include>: Mitsuba's parser "
-                              f"does not survive deep nesting, so scenes are limited to "
-                              f"{MAX_DEPTH} levels")
+    try:
+        while stack:
+            current = stack[-1]
+            if not current.todo:
+                stack.pop()
+                continue
+            elem, depth, owner = current.todo.pop()
+            xml = current.xml
+            where = f"'{xml}', <{elem.tag}>"
+            if depth > MAX_DEPTH:
+                raise BundleError(f"'{xml}' nests elements more than {MAX_DEPTH} levels deep, "
+                                  "counting the elements around its <include>: Mitsuba's "
+                                  f"parser does not survive deep nesting, so scenes are limited "
+                                  f"to {MAX_DEPTH} levels")
 
-        def attr(name: str) -> str | None:
-            raw = elem.get(name)
-            if raw is not None and xml == main and _slashed(elem, name):
-                raw = raw.replace("\\", "/")
-            return None if raw is None else substitute(raw, params, f"{where} {name}")
+            def attr(name: str) -> str | None:
+                raw = elem.get(name)
+                if raw is None:
+                    return None
+                if _names_file(elem, name):
+                    raw = raw.replace("\\", "/")
+                return substitute(raw, params, f"{where} {name}")
 
-        def refer(name: str, folders: list[str], plugin: str) -> Reference:
-            effective = attr(name) or ""
-            raw = elem.get(name, "")
-            written = effective if "$" in raw else raw  # for messages: as the user wrote it
-            path = _lookup(xml, effective, written, folders, exists)
-            found.setdefault(xml, []).append(Reference(xml, written, path, plugin))
-            return found[xml][-1]
+            def refer(name: str, folders: list[str], plugin: str) -> Reference:
+                # A '\' brought in by a parameter separates folders all the same.
+                value = attr(name) or ""
+                effective = value.replace("\\", "/")
+                raw = elem.get(name, "")
+                written = value if "$" in raw else raw  # for messages: as the user wrote it
+                if "$" in effective:  # written out, Mitsuba would substitute it once more
+                    raise BundleError(f"{where}: file name '{written}' has a '$': rename the "
+                                      "file")
+                path, tried = _lookup(xml, effective, written, [*folders, ROOT], exists)
+                if rewrite is not None:
+                    elem.set(name, effective)
+                found.setdefault(xml, []).append(Reference(xml, written, path, plugin, tried))
+                return found[xml][-1]
 
-        if elem.tag == "path":
-            raise BundleError(f"'{xml}' has a <path> element: it adds a folder to Mitsuba's "
-                              "file lookup for the rest of the load, so a file of the bundle "
-                              "could be replaced by one from outside it; bundles may not use it")
-        if elem.tag == "default":
-            _declare(elem, params, where)
-        kind = attr("type")
-        if kind is not None and not _IDENTIFIER.fullmatch(kind):
-            raise BundleError(f"{where} has type '{kind}': Mitsuba loads 'plugins/<type>.so' "
-                              "as code, so a type is letters, digits and '_' only")
-        owner = kind or owner
-        if elem.tag == "string":
-            name = attr("name")
-            if name == "filename":
-                refer("value", [scene_dir], owner)
-            elif name == "material":
-                material = attr("value") or ""
-                if not _MATERIAL.fullmatch(material):
-                    raise BundleError(f"{where} names material '{material}': Mitsuba reads "
-                                      "'data/ior/<material>.eta.spd', so a material is letters, "
-                                      "digits, '_' and '-' only")
-        has_filename = elem.get("filename") is not None
-        if has_filename and elem.tag == "include":
-            includes += 1
-            ref = refer("filename", [posixpath.dirname(xml), *current.folders, scene_dir],
-                        "include")
-            if ref.path in current.chain:
-                raise BundleError(f"'{xml}' includes '{ref.written}', which includes it in "
-                                  f"turn ({' -> '.join(current.chain + (ref.path,))})")
-            if len(current.chain) >= MAX_INCLUDE_DEPTH:
-                raise BundleError(f"'{xml}' includes '{ref.written}': includes nest more than "
-                                  f"{MAX_INCLUDE_DEPTH} files deep, Mitsuba's limit")
-            if includes > MAX_INCLUDES:
-                raise BundleError(f"'{xml}' includes '{ref.written}': the scene reads more "
-                                  f"than {MAX_INCLUDES} included files, counting each time a "
-                                  "file is included")
-            if ref.path not in trees:
-                trees[ref.path] = _read_xml(ref.path, read,
-                                            f"'{ref.written}', included by '{xml}',")
-            stack.append(_File(ref.path, [(trees[ref.path], depth + 1, "")],
-                               [posixpath.dirname(xml), *current.folders],
-                               current.chain + (ref.path,)))
-            continue
-        if has_filename:
-            refer("filename", [*current.folders, scene_dir], elem.tag)
-        current.todo.extend((child, depth + 1, owner) for child in reversed(elem))
+            if elem.tag == "path":
+                raise BundleError(f"'{xml}' has a <path> element: it adds a folder to Mitsuba's "
+                                  "file lookup for the rest of the load, so a file of the "
+                                  "bundle could be replaced by one from outside it; bundles may "
+                                  "not use it")
+            if elem.tag == "default":
+                _declare(elem, params, where)
+            kind = attr("type")
+            if kind is not None and not _IDENTIFIER.fullmatch(kind):
+                raise BundleError(f"{where} has type '{kind}': Mitsuba loads 'plugins/<type>.so' "
+                                  "as code, so a type is letters, digits and '_' only")
+            owner = kind or owner
+            if elem.tag == "string":
+                name = attr("name")
+                if name == "filename":
+                    refer("value", [scene_dir], owner)
+                elif name == "material":
+                    material = attr("value") or ""
+                    if not _MATERIAL.fullmatch(material):
+                        raise BundleError(f"{where} names material '{material}': Mitsuba reads "
+                                          "'data/ior/<material>.eta.spd', so a material is "
+                                          "letters, digits, '_' and '-' only")
+            has_filename = elem.get("filename") is not None
+            if has_filename and elem.tag == "include":
+                includes += 1
+                ref = refer("filename", [posixpath.dirname(xml), *current.folders, scene_dir],
+                            "include")
+                if ref.path in current.chain:
+                    raise BundleError(f"'{xml}' includes '{ref.written}', which includes it in "
+                                      f"turn ({' -> '.join(current.chain + (ref.path,))})")
+                if len(current.chain) >= MAX_INCLUDE_DEPTH:
+                    raise BundleError(f"'{xml}' includes '{ref.written}': includes nest more "
+                                      f"than {MAX_INCLUDE_DEPTH} files deep, Mitsuba's limit")
+                if includes > MAX_INCLUDES:
+                    raise BundleError(f"'{xml}' includes '{ref.written}': the scene reads more "
+                                      f"than {MAX_INCLUDES} included files, counting each time "
+                                      "a file is included")
+                if not exists(ref.path):
+                    missing_include = True
+                    continue
+                if ref.path not in trees:
+                    trees[ref.path] = _read_xml(ref.path, read,
+                                                f"'{ref.written}', included by '{xml}',")
+                stack.append(_File(ref.path, [(trees[ref.path], depth + 1, "")],
+                                   [posixpath.dirname(xml), *current.folders],
+                                   current.chain + (ref.path,)))
+                continue
+            if has_filename:
+                refer("filename", [*current.folders, scene_dir], elem.tag)
+            current.todo.extend((child, depth + 1, owner) for child in reversed(elem))
+    except BundleError:
+        if not missing_include:
+            raise
     return found
 
 
@@ -354,25 +387,32 @@ def _declare(elem: ET.Element, params: dict[str, str | None], where: str) -> Non
 
 
 def _lookup(xml: str, effective: str, written: str, folders: list[str],
-            exists: Callable[[str], bool]) -> str:
+            exists: Callable[[str], bool]) -> tuple[str, tuple[str, ...]]:
     """The bundle path where Mitsuba finds ``effective``, trying ``folders`` in order as its
-    file resolver does: the first one holding the file. Every folder tried before it must keep
-    the path inside the bundle, since Mitsuba looks there too. A file found in none resolves to
-    where it was first expected. Messages quote ``written``."""
+    file resolver does (the first one holding the file), and the paths tried. Mitsuba looks in
+    every folder before the one holding the file, so none of those may lead outside the
+    bundle. A file found nowhere resolves to where it was first expected; where every folder
+    leads outside, that is the error. Messages quote ``written``."""
     origin = f"'{xml}'"
     if effective.startswith("/") or _DRIVE.match(effective):
         raise BundleError(f"absolute path '{written}' (in {origin}) is not allowed in a scene "
                           "bundle")
-    if "\\" in effective:
-        raise BundleError(f"path '{written}' (in {origin}) has a '\\', which Mitsuba on Linux "
-                          "reads as part of a file name: separate folders with '/'")
-    candidates = []
+    tried: list[str] = []
+    outside: BundleError | None = None
     for folder in dict.fromkeys(folders):
         joined = posixpath.join(folder, effective)
         try:
-            candidates.append(normalize(joined, origin=origin))
+            tried.append(normalize(joined, origin=origin))
+        except _Outside:
+            outside = outside or BundleError(f"path '{written}' (in {origin}) leaves the "
+                                             "scene bundle")
+            continue
         except BundleError as exc:
             raise BundleError(str(exc).replace(f"'{joined}'", f"'{written}'")) from None
-        if exists(candidates[-1]):
-            return candidates[-1]
-    return candidates[0]
+        if exists(tried[-1]):
+            if outside:
+                raise outside
+            return tried[-1], tuple(tried)
+    if not tried:
+        raise outside or BundleError(f"empty path '{written}' (in {origin})")
+    return tried[0], tuple(tried)

@@ -10,8 +10,13 @@ from typing import Sequence
 import click
 
 from matopt import client as mc
+<<<<<<< HEAD
 from matopt.cli.output import (best, emit_json, fields, json_option, note, number,
                                 parameter_error, table, timestamp, uploading)
+=======
+from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
+                                uploading, warn)
+>>>>>>> scenes
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected
@@ -191,6 +196,8 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
     created = client.jobs.CreateJob(pb.CreateJobRequest(
         spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
         initial_from_which=WHICH[from_which.lower()]))
+    for line in created.notes:  # what the daemon saw fit to say at once: large parameters
+        warn(line)
     if as_json and not wait:
         emit_json(created)
     elif not as_json:

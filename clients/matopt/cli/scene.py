@@ -13,7 +13,11 @@ from matopt.cli.output import (emit_json, fields, json_option, message_dict, not
 from matopt.cli.params import SCENE, Assignment, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
+<<<<<<< HEAD
 from matopt_api import enums
+=======
+from matopt_api import costs
+>>>>>>> scenes
 from matopt_api.v1 import matopt_pb2 as pb
 
 
@@ -24,7 +28,7 @@ def scene() -> None:
 
 
 def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, str],
-                 display_name: str = "") -> pb.Scene:
+                 display_name: str = "", root: str | None = None) -> pb.Scene:
     """Uploads the bundle (none for the built-in Cornell box) and creates the scene.
 
     A fresh request_id per call lets the daemon recognise a retried request as the same one.
@@ -32,7 +36,7 @@ def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, 
     request = pb.CreateSceneRequest(overrides=overrides, request_id=str(uuid.uuid4()),
                                     display_name=display_name)
     if scene_xml:
-        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading)
+        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading, root)
         request.main_file = main_file
         request.files.extend(files)
     return client.scenes.CreateScene(request)
@@ -44,17 +48,24 @@ def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, 
 @click.option("--set", "overrides", multiple=True, type=Assignment(),
               help="an XML <default> value, e.g. --set resx=256 (repeatable)")
 @click.option("--name", "display_name", default="", help="display name (default: file name)")
+@click.option("--root", type=click.Path(exists=True, file_okay=False),
+              help="the folder the scene's file names are relative to (the directory Mitsuba "
+                   "was run from) [default: found]")
 @json_option
 def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, str], ...],
-         display_name: str, as_json: bool) -> None:
+         display_name: str, root: str | None, as_json: bool) -> None:
     """Load a scene; prints its name.
 
-    Uploads SCENE.xml and every file it references (relative to its directory), except
-    those the daemon already has.
+    Uploads SCENE.xml and every file it references, except those the daemon already has.
+    A file name is looked up as Mitsuba does: from the folder of the XML naming it, then from
+    the root (--root; else the XML's folder, the current directory or a parent folder of the
+    XML, the first under which every file is found). '\\' separates folders as '/' does.
     """
     if bool(scene_xml) == cornell_box:
         raise click.UsageError("give either SCENE.xml or --cornell-box")
-    created = create_scene(connected(), scene_xml, dict(overrides), display_name)
+    if root and cornell_box:
+        raise click.UsageError("--root goes with SCENE.xml")
+    created = create_scene(connected(), scene_xml, dict(overrides), display_name, root)
     for warning in created.warnings:
         warn(warning)
     if as_json:
@@ -126,12 +137,25 @@ def params(name: str, as_json: bool) -> None:
     if as_json:
         emit_json(pb.ListSceneParametersResponse(parameters=parameters))
         return
-    noted = any(p.discontinuous for p in parameters)  # gradients need a projective integrator
+    notes = [parameter_note(p) for p in parameters]
+    noted = any(notes)
     table(["KEY", "KIND", "SHAPE", "VALUE", "MIN", "MAX", "LR"] + (["NOTE"] if noted else []),
           [[p.key, enums.short_name(pb.ParameterKind, p.kind), "x".join(map(str, p.shape)),
             values(p.value), number(p.min), number(p.max), number(p.default_learning_rate)]
-           + (["discontinuous" if p.discontinuous else ""] if noted else [])
-           for p in parameters])
+           + ([n] if noted else []) for p, n in zip(parameters, notes)])
+    for p in parameters:
+        if costs.is_large(p.shape):
+            note(costs.parameter_cost(p.key, p.shape))
+
+
+def parameter_note(p: pb.Parameter) -> str:
+    """What to know before selecting it: gradients that need a projective integrator, and the
+    memory of a large one (its full cost is printed below the table)."""
+    words = ["discontinuous"] if p.discontinuous else []
+    if costs.is_large(p.shape):
+        size = costs.value_count(p.shape) * costs.DEVICE_BYTES_PER_VALUE
+        words.append(f"large: {costs.format_size(size)} to optimize")
+    return ", ".join(words)
 
 
 def parameter_values(client: mc.Client, args) -> list[pb.ParameterValue]:

@@ -33,13 +33,16 @@ def preload_plugins() -> None:
         manager.plugin_type(plugin.stem)
 
 
-def confine(folder: Path) -> None:
-    """Resets Mitsuba's global file resolver to the scene's folder and Mitsuba's own: the
-    current directory, which Mitsuba adds at start-up, and any folder a previous load added
-    are gone, so a relative file name finds nothing outside the scene."""
+def confine(folder: Path, root: Path) -> None:
+    """Resets Mitsuba's global file resolver to the scene's folder, the bundle's root and
+    Mitsuba's own: the current directory, which Mitsuba adds at start-up, and any folder a
+    previous load added are gone, so a relative file name finds nothing outside the scene. The
+    root stands for the directory the scene's author ran Mitsuba from (``matopt_api.bundle``
+    follows the same order and refuses a name that would lead outside before it is found)."""
     resolver = mi.file_resolver()
     resolver.clear()
     resolver.append(str(folder))
+    resolver.append(str(root))
     resolver.append(str(MITSUBA_DIR))
 
 
@@ -55,7 +58,7 @@ def load(loadable: Path, overrides: dict[str, str], display: str,
     keys. Without ``keys`` (listing every parameter) nothing is merged; with the keys a job
     optimizes, meshes are merged unless that would lose one of them.
     """
-    confine(loadable.parent)
+    confine(loadable.parent, root)
     try:
         if keys is not None:
             merged = mi.load_file(str(loadable), optimize=True, **overrides)
