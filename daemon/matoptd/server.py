@@ -21,11 +21,7 @@ from google.protobuf import empty_pb2
 from google.protobuf.message import Message
 
 from matoptd import __version__
-<<<<<<< HEAD
-from matopt_api import enums
-=======
-from matopt_api import costs
->>>>>>> scenes
+from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
@@ -478,13 +474,10 @@ class JobService(rpc.JobServiceServicer):
         self._admit_another(user)  # again: other requests of this user may have come first
         job = pb.Job(name=f"jobs/{uuid.uuid4().hex[:12]}", spec=spec, state=pb.JOB_STATE_QUEUED,
                      owner=user, best_iteration=-1)
-<<<<<<< HEAD
         job.notes.extend(_clip_notes(settings, restarted, request))
-=======
         job.notes.extend(costs.parameter_cost(p.key, params[p.key].shape,
                                               estimate.samples_per_iteration)
                          for p in spec.parameters if costs.is_large(params[p.key].shape))
->>>>>>> scenes
         job.create_time.CopyFrom(now())
         job.update_time.CopyFrom(job.create_time)
         self.store.add_job(job, request.request_id)

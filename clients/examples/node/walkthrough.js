@@ -41,27 +41,19 @@ function connect() {
     oneofs: true,
   });
   const v1 = grpc.loadPackageDefinition(definition).matopt.v1;
-  let creds = args.ca
+  const creds = args.ca
     ? grpc.credentials.createSsl(fs.readFileSync(args.ca))
     : grpc.credentials.createInsecure();
-  if (args.token) {
-    const bearer = grpc.credentials.createFromMetadataGenerator((_, done) => {
-      const md = new grpc.Metadata();
-      md.set("authorization", `Bearer ${args.token}`);
-      done(null, md);
-    });
-    // A token over plain text is refused by grpc-js; matoptd wants TLS with tokens anyway.
-    creds = args.ca ? grpc.credentials.combineChannelCredentials(creds, bearer) : creds;
-  }
-  const plainMetadata = new grpc.Metadata();
-  if (args.token && !args.ca) plainMetadata.set("authorization", `Bearer ${args.token}`);
+  // Sent with every call: the daemon's --tokens file maps the token to a user.
+  const metadata = new grpc.Metadata();
+  if (args.token) metadata.set("authorization", `Bearer ${args.token}`);
   const make = (Service) => new Service(args.server, creds);
   return {
     blobs: make(v1.BlobService),
     scenes: make(v1.SceneService),
     jobs: make(v1.JobService),
     server: make(v1.ServerService),
-    metadata: plainMetadata,
+    metadata,
   };
 }
 

@@ -10,13 +10,8 @@ from typing import Sequence
 import click
 
 from matopt import client as mc
-<<<<<<< HEAD
 from matopt.cli.output import (best, emit_json, fields, json_option, note, number,
-                                parameter_error, table, timestamp, uploading)
-=======
-from matopt.cli.output import (best, emit_json, fields, json_option, note, number, table, timestamp,
-                                uploading, warn)
->>>>>>> scenes
+                                parameter_error, table, timestamp, uploading, warn)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
 from matopt.cli.progress import JobProgress, describe, follow, outcome
 from matopt.cli.session import Group, connected

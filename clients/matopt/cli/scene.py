@@ -13,11 +13,7 @@ from matopt.cli.output import (emit_json, fields, json_option, message_dict, not
 from matopt.cli.params import SCENE, Assignment, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
-<<<<<<< HEAD
-from matopt_api import enums
-=======
-from matopt_api import costs
->>>>>>> scenes
+from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 

@@ -23,11 +23,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLab
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from matopt import client as mc
-<<<<<<< HEAD
-from matopt_api import enums
-=======
-from matopt_api import costs
->>>>>>> scenes
+from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 # "Current" sits next to "Value" so that start and current values read side by side.
@@ -163,11 +159,6 @@ class ParamsTable(QWidget):
             value.setToolTip("double-click to set the value the job starts from")
         else:
             n = math.prod(p.shape) if p.shape else len(p.value)
-<<<<<<< HEAD
-            value = _readonly(format_values(p.value) if p.value else f"{n} values",
-                              tooltip="only scalars and RGB colours can be edited here")
-        if p.kind == pb.PARAMETER_KIND_RGB and len(p.value) >= 3:
-=======
             text, tip = format_values(p.value) if p.value else f"{n:,} values", ""
             if costs.is_large(p.shape):  # say what selecting it costs
                 size = costs.format_size(n * costs.DEVICE_BYTES_PER_VALUE)
@@ -176,7 +167,6 @@ class ParamsTable(QWidget):
             value = _readonly(text, tooltip=tip + "only scalars and RGB colours can be "
                                                   "edited here")
         if p.kind == pb.PARAMETER_KIND_RGB and len(p.value) >= 3:
->>>>>>> scenes
             value.setIcon(swatch(p.value))
         self.table.setItem(i, VALUE, value)
         for column, number in ((LR, p.default_learning_rate), (MIN, p.min), (MAX, p.max)):
