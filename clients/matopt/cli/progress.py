@@ -110,7 +110,10 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
         return text
     record = event.iteration
     of = f"/{total}" if total else ""
-    return f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+    text = f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+    for g in record.gains:  # with --fit-exposure
+        text += f", gain {g.reference or g.sensor} " + "/".join(f"{v:.3g}" for v in g.rgb)
+    return text
 
 
 def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:

@@ -146,7 +146,10 @@ class MitsubaEngine:
 
     def check_references(self, references: list[api.ReferenceInput]) -> None:
         for r in references:
-            images.read_reference(str(self.blob(r.sha256)), r.name)
+            images.load_reference(r, self._blob_path)
+
+    def _blob_path(self, sha256: str) -> str:
+        return str(self.blob(sha256))
 
     # -- jobs -------------------------------------------------------------------------------
 
@@ -160,14 +163,14 @@ class MitsubaEngine:
         keys = [p.key for p in settings.parameters]
         loaded = self.load(settings.scene, keys)
         notes: list[str] = []
-        refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
-                                              for r in settings.references}, notes)
+        refs = _references(loaded, settings, self._blob_path, notes)
         config = Config(loss=settings.loss, iterations=settings.iterations,
                         min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
                         cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
                         clamp=settings.clamp, truth=dict(settings.truth),
                         image_error_every=settings.image_error_every,
-                        image_error_spp=settings.image_error_spp)
+                        image_error_spp=settings.image_error_spp,
+                        fit_exposure=settings.fit_exposure)
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
@@ -175,6 +178,12 @@ class MitsubaEngine:
                              f"sensors rendered: {', '.join(map(str, opt.references))}"
                              + (f" (not rendered: {', '.join(map(str, skipped))})"
                                 if skipped else "")]
+        if opt.gains:
+            opt.notes.append(
+                "exposure gains: one RGB gain per reference, fitted with the parameters (render "
+                "x gain ~ reference), from 1, in log space; a gain trades off against the "
+                "overall scale of reflectance and emission, so keep some of it known and fixed "
+                "(a white surface, the light's radiance) or the split between them is arbitrary")
         if checkpoint is not None:
             try:
                 opt.restore(checkpoint)
@@ -206,7 +215,7 @@ class MitsubaEngine:
             records.append(api.IterationRecord(
                 s.iteration, opt.elapsed, s.loss,
                 {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error))
+                s.errors, s.image_error, s.gains))
             if s.done:
                 done, reason = True, s.stop_reason
                 break
@@ -262,16 +271,19 @@ def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
     return key if key in params else None
 
 
-def _references(scene: mi.Scene, settings: api.JobSettings,
-                files: dict[int, tuple[Path, str]], notes: list[str]) -> dict[int, Reference]:
-    """Reads each reference and sizes its sensor's film: height from ``settings.resolution``
-    (or the film's own), width from the reference's aspect ratio. Each sensor keeps its own
-    size. NaN/Inf pixels are masked out of every loss and counted."""
+def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[str]
+                ) -> dict[int, Reference]:
+    """Reads each reference (with its mask) and sizes its sensor's film: height from
+    ``settings.resolution`` (or the film's own), width from the reference's aspect ratio. Each
+    sensor keeps its own size. Masked and NaN/Inf pixels weigh 0 in every loss; the notes
+    count them."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
     refs = {}
-    for index, (path, name) in sorted(files.items()):
-        picture = images.read_reference(str(path), name)
+    for r in sorted(settings.references, key=lambda r: r.sensor):
+        index, name = r.sensor, r.name
+        picture, weight, said = images.load_reference(r, blob)
+        notes += said
         film = sensors[index].film().crop_size()
         width, height = api.reference_film(settings.resolution or int(film[1]),
                                            picture.shape[1], picture.shape[0])
@@ -284,20 +296,18 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
             params.update()
             notes.append(f"sensor {index} renders {width}x{height} (film was "
                          f"{int(film[0])}x{int(film[1])}) to follow reference '{name}'")
-        picture = images.fit(picture, (width, height))
-        valid = np.isfinite(picture).all(axis=2, keepdims=True)
-        if not valid.all():
-            notes.append(f"reference '{name}': {int((~valid).sum())} NaN/Inf pixel(s) masked "
-                         "out of the loss")
-        weight = np.broadcast_to(valid, picture.shape).astype(np.float32)
-        refs[index] = Reference(mi.TensorXf(np.where(weight > 0, picture, 0.0)),
-                                None if valid.all() else mi.TensorXf(weight))
+        picture, weight = images.fit(picture, weight, (width, height))
+        whole = bool(weight.min() >= 1.0)
+        weight = np.repeat(weight[..., None], 3, axis=2)
+        refs[index] = Reference(mi.TensorXf(picture), None if whole else mi.TensorXf(weight),
+                                r.name)
     return refs
 
 
 def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
     """For each chosen iteration: the renders per sensor (initial, optimized, reference,
-    |optimized - reference|), optimized textures as images, and the optimized scene. Initial
+    |optimized - reference| by mask weight; with gains, optimized renders are times the
+    iteration's gain, as the loss saw them), optimized textures as images, and the optimized scene. Initial
     and reference images are made once and shared."""
     opt = run.opt
     shared, spp = {}, {}
@@ -312,7 +322,7 @@ def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
     for which, it in chosen:
         images_ = []
         for sensor, (reference, (first, ref_image)) in shared.items():
-            optimized = opt.render(it.values, sensor, spp[sensor])
+            optimized = opt.render(it.values, sensor, spp[sensor], it.gains)
             error = np.abs(optimized - reference) * opt.references[sensor].mask()
             images_ += [first, image(optimized, sensor, "optimized"), ref_image,
                         image(error, sensor, "error")]
@@ -327,5 +337,5 @@ def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
             files, unplaced = scene_export.optimized_scene(run.main_xml, run.overrides, held,
                                                            it.values, run.shapes)
         out.append(api.Result(which, it.iteration, it.loss, it.values, opt.initial, images_,
-                              files, "scene_optimized.xml", unplaced))
+                              files, "scene_optimized.xml", unplaced, it.gains))
     return out
