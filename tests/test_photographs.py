@@ -145,7 +145,7 @@ def test_alpha_channel_as_mask_with_8bit_png(stubs, cornell):
 
 # -- exposure and white balance ---------------------------------------------------------------
 
-def test_fit_exposure_recovers_gain_tint_and_walls(stubs, cornell):
+def test_fit_exposure_recovers_gain_tint_and_walls(stubs, cornell, cli_env):
     """A photograph at half the exposure with a warm white balance: with fit_exposure the
     walls come back and the gains are the factors applied. At 16 spp: plain MSE's noise term
     grows with the gain squared, which at 4 spp biases the gains several percent low."""
@@ -164,6 +164,12 @@ def test_fit_exposure_recovers_gain_tint_and_walls(stubs, cornell):
     # about the exposure (walls at grey 0.5 instead of their colours make them off by ~20%).
     assert np.array(history[0].gains[0].rgb) == pytest.approx(factors, rel=0.3)
     assert list(history[result.iteration].gains[0].rgb) == list(gain.rgb)
+    shown = subprocess.run([sys.executable, "-m", "matopt.cli", "job", "result", done.name,
+                            "--which", "last"], env=cli_env, capture_output=True, text=True,
+                           timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    line = next(x for x in shown.stdout.splitlines() if x.startswith("gain of dim.exr:"))
+    assert [float(v) for v in line.split(":")[1].split(",")] == pytest.approx(gain.rgb, rel=1e-3)
 
 
 def test_paused_job_goes_on_with_the_gains_it_would_have_had(stubs, cornell, tmp_path):

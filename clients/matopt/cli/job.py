@@ -140,7 +140,8 @@ def _is_blob(image: str) -> bool:
               default="best", show_default=True, help="which result of --from")
 @click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
 @json_option
-def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits, loss: str | None, schedule: str | None,
+def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits,
+          loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
           image_error_every: int | None, from_job: str | None, from_which: str,

@@ -1,6 +1,6 @@
 """Images in and out: reference images (with their masks) become linear float tensors of the
-film's size and per-pixel weights; renders go out as linear OpenEXR (for analysis and as references) and 8-bit sRGB PNG (for
-eyes)."""
+film's size and per-pixel weights; renders go out as linear OpenEXR (for analysis and as
+references) and 8-bit sRGB PNG (for eyes)."""
 
 from __future__ import annotations
 
@@ -50,8 +50,9 @@ def read_reference(path: str, name: str, alpha: bool = False
     if not alpha:
         return pixels, None
     if not _has_alpha(bitmap):
+        layout = str(bitmap.pixel_format()).split(".")[-1]
         raise InvalidInput(f"reference image '{name}' has no alpha channel to use as its mask "
-                           f"(alpha_mask): its pixels are {str(bitmap.pixel_format()).split('.')[-1]}")
+                           f"(alpha_mask): its pixels are {layout}")
     # Alpha carries no tone curve; converting keeps it straight (not premultiplied).
     rgba = np.array(bitmap.convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.Float32,
                                    srgb_gamma=False), dtype=np.float32)

@@ -304,9 +304,9 @@ class Optimization:
         return float(np.mean(losses))
 
     def _read_theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
-        """theta_i and its gains, before the first step changes it. Read after the loss, not before the
-        render: reading syncs, and by then the render has evaluated the values (a log
-        parameter's e^u is recomputed in the one launch that also counts the guards)."""
+        """theta_i and its gains, before the first step changes it. Read after the loss, not
+        before the render: reading syncs, and by then the render has evaluated the values (a
+        log parameter's e^u is recomputed in the one launch that also counts the guards)."""
         if self._theta is None:
             self._theta = self.theta()
         return self._theta

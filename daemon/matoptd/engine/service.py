@@ -307,8 +307,8 @@ def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[st
 def _results(run: Run, chosen: list[tuple[str, Best]]) -> list[api.Result]:
     """For each chosen iteration: the renders per sensor (initial, optimized, reference,
     |optimized - reference| by mask weight; with gains, optimized renders are times the
-    iteration's gain, as the loss saw them), optimized textures as images, and the optimized scene. Initial
-    and reference images are made once and shared."""
+    iteration's gain, as the loss saw them), optimized textures as images, and the optimized
+    scene. Initial and reference images are made once and shared."""
     opt = run.opt
     shared, spp = {}, {}
     for sensor, ref in opt.references.items():
