@@ -101,22 +101,28 @@ def create_scene(stubs, files: dict[str, bytes], main: str, **overrides) -> pb.S
         main_file=main, files=bundle, overrides={k: str(v) for k, v in overrides.items()}))
 
 
-def png(pixels) -> bytes:
-    """An 8-bit RGB PNG of an (H, W, 3) array in [0, 1] (sRGB-encoded values), without Mitsuba."""
+def png(pixels, bits: int = 8) -> bytes:
+    """A PNG of an (H, W), (H, W, 3) or (H, W, 4) array in [0, 1] (sRGB-encoded values; grey,
+    RGB or RGB + straight alpha), 8 or 16 bits per channel, without Mitsuba."""
     import struct
     import zlib
 
     import numpy as np
 
-    rgb = (np.clip(np.asarray(pixels), 0, 1) * 255 + 0.5).astype(np.uint8)
-    raw = b"".join(b"\x00" + row.tobytes() for row in rgb)
+    a = np.asarray(pixels, dtype=np.float64)
+    a = a[..., None] if a.ndim == 2 else a
+    top, kind = (255, ">u1") if bits == 8 else (65535, ">u2")
+    values = (np.clip(a, 0, 1) * top + 0.5).astype(kind)
+    raw = b"".join(b"\x00" + row.tobytes() for row in values)
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return (struct.pack(">I", len(data)) + kind + data
                 + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
 
-    h, w = rgb.shape[:2]
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+    h, w, c = values.shape
+    colour = {1: 0, 3: 2, 4: 6}[c]
+    return (b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, bits, colour, 0, 0, 0))
             + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
 
 

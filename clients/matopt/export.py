@@ -89,7 +89,8 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     """Writes parameters.json, the initial/optimized/reference/error images, optimized
     textures, the optimized scene (``scene/``) and history.csv.
 
-    ``parameters.json`` holds flat value lists (shapes apart, under "shapes"); a parameter
+    ``parameters.json`` holds flat value lists (shapes apart, under "shapes"), and with
+    fit_exposure the RGB gain of each reference (under "gains"); a parameter
     too large to travel inline is written as ``<key>.npy`` (``<key>_initial.npy`` for its
     initial value) and named in the JSON instead of its values.
     """
@@ -111,6 +112,9 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
         "initial": initial,
         "shapes": {**initial_shapes, **shapes},
     }
+    if result.gains:  # fit_exposure: render x gain ~ reference, per reference
+        document["gains"] = {g.reference or f"sensor {g.sensor}": short_floats(g.rgb)
+                             for g in result.gains}
     path = out / "parameters.json"
     path.write_text(json.dumps(document, indent=2) + "\n")
     export.files.append(path)

@@ -168,14 +168,16 @@ def check(estimate: Estimate, limits: Limits) -> None:
             f"({_n(estimate.film_bytes)} bytes); {_over('max_film_memory', limits, ' bytes')}")
 
 
-def reference_header(path: Path, name: str, limits: Limits) -> ImageHeader:
-    """The header of a reference image, refused when it is not an image or too large."""
+def reference_header(path: Path, name: str, limits: Limits, role: str = "reference image"
+                     ) -> ImageHeader:
+    """The header of a reference image (or of its mask: ``role``), refused when it is not an
+    image or too large."""
     try:
         with open(path, "rb") as f:
-            header = read_header(f, name)
+            header = read_header(f, name, role)
     except BadHeader as exc:
         raise InvalidArgument(str(exc)) from None
-    what = (f"reference image '{name}' is a {header.width}x{header.height} px "
+    what = (f"{role} '{name}' is a {header.width}x{header.height} px "
             f"{header.format} file")
     if header.pixels > limits.max_reference_pixels:
         raise ResourceExhausted(f"{what}: {_n(header.pixels)} px; "
@@ -189,9 +191,19 @@ def reference_header(path: Path, name: str, limits: Limits) -> ImageHeader:
 
 def admit_job(settings: api.JobSettings, films: dict[int, tuple[int, int]],
               blob_file: Callable[[str], Path], limits: Limits) -> Estimate:
-    """Reads every reference's header (``blob_file``: digest -> file) and checks the job."""
+    """Reads every reference's header (``blob_file``: digest -> file), and its mask's, which
+    must be of the reference's size, and checks the job."""
     headers = {r.sensor: reference_header(blob_file(r.sha256), r.name, limits)
                for r in settings.references}
+    for r in settings.references:
+        if not r.mask_sha256:
+            continue
+        mask = reference_header(blob_file(r.mask_sha256), r.mask_name, limits, "mask")
+        ref = headers[r.sensor]
+        if (mask.width, mask.height) != (ref.width, ref.height):
+            raise InvalidArgument(f"mask '{r.mask_name}' is {mask.width}x{mask.height} px, but "
+                                  f"its reference image '{r.name}' is {ref.width}x{ref.height} "
+                                  "px: a mask must have the reference's size")
     estimate = job_estimate(settings, films, headers)
     check(estimate, limits)
     return estimate

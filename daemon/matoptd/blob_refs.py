@@ -24,8 +24,10 @@ def scene_blobs(scene: pb.Scene, inputs: str | None) -> set[str]:
 
 
 def spec_blobs(spec: pb.JobSpec) -> set[str]:
-    """What a job reads: references, initial values and ground truth given as blobs."""
+    """What a job reads: references and their masks, initial values and ground truth given
+    as blobs."""
     return _bare([*(r.blob for r in spec.references),
+                  *(r.mask_blob for r in spec.references),
                   *(p.initial_blob for p in spec.parameters),
                   *(t.blob for t in spec.ground_truth)])
 

@@ -119,7 +119,9 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
     """The engine's settings of a job whose spec was validated and defaulted; ``max_samples``
     is the daemon's limit on one render call (matoptd --max-samples)."""
     references = [api.ReferenceInput(r.sensor if r.HasField("sensor") else i,
-                                     r.blob.removeprefix("blobs/"), r.filename or r.blob)
+                                     r.blob.removeprefix("blobs/"), r.filename or r.blob,
+                                     r.mask_blob.removeprefix("blobs/"),
+                                     r.mask_filename or r.mask_blob, r.alpha_mask)
                   for i, r in enumerate(spec.references)]
     parameters = [api.ParameterSetting(
         p.key, p.learning_rate, p.min, p.max,
@@ -137,16 +139,32 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
         cosine=spec.schedule != pb.SCHEDULE_CONSTANT, step_per_sensor=spec.sensor_mode == pb.SENSOR_MODE_STEP_PER_SENSOR,
         clamp=spec.clamp, resolution=spec.film_height, truth=truth,
         image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64,
-        max_samples=max_samples)
+        fit_exposure=spec.fit_exposure, max_samples=max_samples)
 
 
-def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]]) -> pb.IterationRecord:
+def reference_names(spec: pb.JobSpec) -> dict[int, str]:
+    """Each reference's file name by the sensor it belongs to, for the gains."""
+    return {r.sensor if r.HasField("sensor") else i: r.filename or r.blob
+            for i, r in enumerate(spec.references)}
+
+
+def gains_to_pb(gains: dict[int, np.ndarray], names: dict[int, str]
+                ) -> list[pb.ReferenceGain]:
+    return [pb.ReferenceGain(sensor=s, reference=names.get(s, ""),
+                             rgb=np.asarray(g, dtype=np.float32).ravel().tolist())
+            for s, g in sorted(gains.items())]
+
+
+def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]],
+                 names: dict[int, str] | None = None) -> pb.IterationRecord:
+    """``names``: the reference file names by sensor (reference_names), for the gains."""
     out = pb.IterationRecord(
         iteration=r.iteration, seconds=r.seconds, loss=r.loss,
         parameters=values_to_pb(r.values, shapes, None),
         errors=[pb.ParameterError(key=k, max_abs=e.max_abs, rmse=e.rmse, relative=e.relative,
                                   psnr=e.psnr, correlation=e.correlation)
-                for k, e in r.errors.items()])
+                for k, e in r.errors.items()],
+        gains=gains_to_pb(r.gains, names or {}))
     if r.image_error is not None:
         out.image_error = r.image_error
     return out
@@ -175,9 +193,9 @@ def counters_to_job(job: pb.Job, c: api.Counters) -> None:
 
 
 def result_to_pb(job: str, r: api.Result, shapes: dict[str, list[int]], scene: pb.Scene,
-                 put_blob: PutBlob) -> pb.JobResult:
+                 put_blob: PutBlob, names: dict[int, str] | None = None) -> pb.JobResult:
     """The result, with the optimized scene as a bundle: the original files, and the new ones
-    next to the main XML."""
+    next to the main XML. ``names``: the reference file names by sensor, for the gains."""
     base = scene.main_file.rpartition("/")[0]
     new = {f"{base}/{path}" if base else path: put_blob(data)
            for path, data in r.scene_files.items()}
@@ -185,7 +203,7 @@ def result_to_pb(job: str, r: api.Result, shapes: dict[str, list[int]], scene: p
                        loss=r.loss, parameters=values_to_pb(r.values, shapes, put_blob),
                        initial_parameters=values_to_pb(r.initial_values, shapes, put_blob),
                        images=[image_to_pb(i, put_blob) for i in r.images],
-                       unplaced_parameters=r.unplaced)
+                       unplaced_parameters=r.unplaced, gains=gains_to_pb(r.gains, names or {}))
     out.scene_files.extend(f for f in scene.files if f.path not in new)
     out.scene_files.extend(pb.BundleFile(path=p, sha256=b.removeprefix("blobs/"))
                            for p, b in new.items())

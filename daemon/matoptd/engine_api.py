@@ -134,9 +134,15 @@ class Image:
 
 @dataclass
 class ReferenceInput:
+    """A reference image and what leaves its pixels out of the loss: a mask image of its size
+    (weights in [0, 1]) and/or its own alpha channel."""
+
     sensor: int
-    sha256: str  # PNG/JPEG (sRGB) or OpenEXR (linear)
+    sha256: str  # PNG/JPEG, 8 or 16 bit (sRGB), or OpenEXR (linear)
     name: str    # the user's file name, for messages
+    mask_sha256: str = ""  # "": no mask image
+    mask_name: str = ""
+    alpha_mask: bool = False
 
 
 @dataclass
@@ -167,6 +173,7 @@ class JobSettings:
     truth: dict[str, np.ndarray] = field(default_factory=dict)  # flat values, for errors
     image_error_every: int = 0
     image_error_spp: int = 64
+    fit_exposure: bool = False   # one RGB gain per reference: render * gain ~ reference
     # The most samples (film pixels x spp) one render call may take; 0: no limit. Results
     # render at RESULT_SPP, or fewer on a film so large that RESULT_SPP would exceed this.
     max_samples: int = 0
@@ -217,6 +224,7 @@ class IterationRecord:
     values: dict[str, np.ndarray]
     errors: dict[str, ParameterError] = field(default_factory=dict)  # with ground truth
     image_error: float | None = None
+    gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB (fit_exposure)
 
 
 @dataclass
@@ -253,6 +261,7 @@ class Result:
     scene_files: dict[str, bytes]           # new files, paths relative to the main XML's folder
     scene_file: str                         # the optimized XML among them
     unplaced: list[str]                     # keys the XML could not be made to hold
+    gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB (fit_exposure)
 
 
 @dataclass
@@ -274,7 +283,8 @@ class Engine(Protocol):
         """Renders with the scene's own integrator (a preview or a synthetic reference)."""
 
     def check_references(self, references: list[ReferenceInput]) -> None:
-        """Raises InvalidInput naming the first reference that is not a readable image."""
+        """Raises InvalidInput naming the first reference (or mask) that is not a readable
+        image, whose mask does not fit it, or that leaves no pixel to compare."""
 
     def start(self, job: str, settings: JobSettings, checkpoint: bytes | None) -> Started:
         """Loads a job's run (from a checkpoint when given) and holds it until ``release``."""

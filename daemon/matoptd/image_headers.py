@@ -57,9 +57,9 @@ class ImageHeader:
         return self.pixels * (self.sample_bytes + 3 * 4)
 
 
-def read_header(f: BinaryIO, name: str) -> ImageHeader:
+def read_header(f: BinaryIO, name: str, what: str = "reference image") -> ImageHeader:
     """The dimensions of the image in ``f`` (a binary file positioned at its start);
-    ``name`` is the user's file name, for messages."""
+    ``name`` is the user's file name and ``what`` the image's role, for messages."""
     start = f.read(8)
     try:
         if start.startswith(PNG_SIGNATURE):
@@ -73,9 +73,9 @@ def read_header(f: BinaryIO, name: str) -> ImageHeader:
             raise BadHeader("not a PNG, JPEG or OpenEXR file")
     except (BadHeader, struct.error) as exc:
         why = str(exc) if isinstance(exc, BadHeader) else "its header is truncated"
-        raise BadHeader(f"reference image '{name}' cannot be read: {why}") from None
+        raise BadHeader(f"{what} '{name}' cannot be read: {why}") from None
     if header.width < 1 or header.height < 1:
-        raise BadHeader(f"reference image '{name}' cannot be read: its {header.format} header "
+        raise BadHeader(f"{what} '{name}' cannot be read: its {header.format} header "
                         f"gives a size of {header.width}x{header.height} pixels")
     return header
 

@@ -478,7 +478,8 @@ class Runner:
     def _step(self, engine: RemoteEngine, job: pb.Job, action: Action) -> None:
         progress: api.Progress = engine.step(job.name, action.n)
         shapes = self._shapes.get(job.name, {})
-        records = [convert.record_to_pb(r, shapes) for r in progress.records]
+        names = convert.reference_names(job.spec)
+        records = [convert.record_to_pb(r, shapes, names) for r in progress.records]
         for record in records:
             self.store.add_iteration(job.name, record)
         with self.lock:
@@ -556,7 +557,8 @@ class Runner:
         made = self._images.get(job.name, {})
         for result in finished.results:
             out = convert.result_to_pb(job.name, result, shapes, scene,
-                                       self.store.writer(job.owner))
+                                       self.store.writer(job.owner),
+                                       convert.reference_names(job.spec))
             images = made.get(result.which, []) + list(out.images)  # sensors, then textures
             del out.images[:]
             out.images.extend(images)

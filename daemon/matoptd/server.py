@@ -348,6 +348,9 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
 
     count = len(scene.sensors)
     refs = list(spec.references)
+    if spec.fit_exposure and not refs:
+        raise InvalidArgument("fit_exposure fits one gain per reference image, but the job "
+                              "has no reference images")
     if not refs:
         raise InvalidArgument(f"no reference images: the scene has {count} sensor(s)")
     explicit = [r.HasField("sensor") for r in refs]
@@ -368,6 +371,11 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
             raise InvalidArgument(f"two reference images for sensor {index}")
         seen.add(index)
         store.blob_file(r.blob)
+        if r.mask_blob:
+            store.blob_file(r.mask_blob)
+        elif r.mask_filename:
+            raise InvalidArgument(f"reference '{label}' names mask file '{r.mask_filename}' "
+                                  "but no mask_blob: upload the mask and give its blob")
 
     if not spec.parameters:
         raise InvalidArgument("no parameters selected: name at least one key "

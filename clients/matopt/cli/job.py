@@ -100,16 +100,30 @@ def upload_values(client: mc.Client, scene: str, specs: Sequence[pb.ParameterSpe
         setattr(message, attribute, mc.blob_name(mc.upload_file(client, path, uploading)))
 
 
-def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]]
-                      ) -> list[pb.Reference]:
-    """References for the given images; a ``blobs/<sha256>`` already on the daemon is reused."""
-    local = [image for _, image in refs if not _is_blob(image)]
+NO_MASK, ALPHA_MASK = "-", "@alpha"  # --mask values that name no file
+
+
+def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]],
+                      masks: Sequence[str] = ()) -> list[pb.Reference]:
+    """References for the given images, with the i-th mask (a file, ``@alpha`` or ``-``) for
+    the i-th image; files are uploaded together, a ``blobs/<sha256>`` already on the daemon is
+    reused."""
+    masks = list(masks) or [NO_MASK] * len(refs)
+    files = [image for _, image in refs] + [m for m in masks if m not in (NO_MASK, ALPHA_MASK)]
+    local = list(dict.fromkeys(f for f in files if not _is_blob(f)))
     digests = dict(zip(local, mc.upload_files(client, local, uploading)))
+
+    def blob(path: str) -> tuple[str, str]:
+        if _is_blob(path):
+            return path, path
+        return mc.blob_name(digests[path]), os.path.basename(path)
+
     out = []
-    for sensor, image in refs:
-        blob = image if _is_blob(image) else mc.blob_name(digests[image])
-        filename = image if _is_blob(image) else os.path.basename(image)
-        ref = pb.Reference(blob=blob, filename=filename)
+    for (sensor, image), mask in zip(refs, masks):
+        name, filename = blob(image)
+        ref = pb.Reference(blob=name, filename=filename, alpha_mask=mask == ALPHA_MASK)
+        if mask not in (NO_MASK, ALPHA_MASK):
+            ref.mask_blob, ref.mask_filename = blob(mask)
         if sensor is not None:
             ref.sensor = sensor
         out.append(ref)
@@ -125,6 +139,14 @@ def _is_blob(image: str) -> bool:
 @click.option("--ref", "refs", multiple=True, required=True, type=ReferenceImage(),
               help="reference image (PNG, JPEG, EXR) for the next sensor, or N=IMAGE for "
                    "sensor N; IMAGE may also be blobs/<sha256> (repeatable)")
+@click.option("--mask", "masks", multiple=True, metavar="MASK",
+              help="mask of the reference given by the --ref in the same position: an image "
+                   "of its size (black = pixel left out, white = counted), blobs/<sha256>, "
+                   f"'{ALPHA_MASK}' (the reference's own alpha channel) or '{NO_MASK}' (none); "
+                   "give none, or one per --ref")
+@click.option("--fit-exposure", is_flag=True,
+              help="fit an RGB gain per reference (unknown exposure and white balance of "
+                   "photographs), with the parameters")
 @click.option("--param", "keys", multiple=True, required=True, metavar="KEY",
               help="a parameter to optimize, see 'matopt scene params' (repeatable)")
 @click.option("--lr", "rates", multiple=True, type=LearningRate(),
@@ -160,7 +182,8 @@ def _is_blob(image: str) -> bool:
               default="best", show_default=True, help="which result of --from")
 @click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
 @json_option
-def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedule: str | None,
+def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits,
+          loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
           image_error_every: int | None, from_job: str | None, from_which: str,
@@ -170,6 +193,11 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
     The --param keys of SCENE are optimized until its renders match the --ref images. Options
     left out take the daemon's defaults (shown by 'matopt job status'). With --wait,
     the exit status is non-zero if the job fails or is cancelled.
+
+    Photographs: --mask leaves background and blown-out pixels out of the loss, e.g.
+    '--ref photo.png --mask photo_mask.png' or '--ref cutout.png --mask @alpha';
+    --fit-exposure fits each photograph's exposure and white balance ('matopt job result'
+    shows the gains).
     """
     given = {"iterations": iterations, "spp": spp, "min_error": min_error, "seed": seed,
              "loss": LOSSES[loss.lower()] if loss else None,
@@ -177,7 +205,7 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
              "learning_rate": next((rate for key, rate in rates if key is None), None),
              "sensor_mode": SENSOR_MODES[sensor_mode.lower()] if sensor_mode else None,
              "clamp": clamp or None, "film_height": resolution,
-             "image_error_every": image_error_every}
+             "image_error_every": image_error_every, "fit_exposure": fit_exposure or None}
     spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
                       **{k: v for k, v in given.items() if v is not None})
     spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "")
@@ -185,9 +213,16 @@ def start(scene: str, refs, keys, rates, ranges, inits, loss: str | None, schedu
     for _, image in refs:
         if not _is_blob(image) and not os.path.isfile(image):
             raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
+    if masks and len(masks) != len(refs):
+        raise click.BadParameter(f"got {len(masks)} --mask for {len(refs)} --ref: give one per "
+                                 f"--ref, in the same order ('{NO_MASK}' for none)",
+                                 param_hint="--mask")
+    for mask in masks:
+        if mask not in (NO_MASK, ALPHA_MASK) and not _is_blob(mask) and not os.path.isfile(mask):
+            raise click.BadParameter(f"'{mask}' is not a file", param_hint="--mask")
     client = connected()
     upload_values(client, scene, spec.parameters, spec.ground_truth)
-    spec.references.extend(upload_references(client, refs))
+    spec.references.extend(upload_references(client, refs, masks))
     created = client.jobs.CreateJob(pb.CreateJobRequest(
         spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
         initial_from_which=WHICH[from_which.lower()]))
@@ -257,7 +292,8 @@ def status(name: str, as_json: bool) -> None:
         "best loss": best(j),
         "elapsed": f"{j.elapsed_seconds:.1f} s",
         "parameters": ", ".join(p.key for p in spec.parameters),
-        "references": ", ".join(r.filename or r.blob for r in spec.references),
+        "references": ", ".join(reference_label(r) for r in spec.references),
+        "fit exposure": "yes (an RGB gain per reference)" if spec.fit_exposure else None,
         "loss function": enums.short_name(pb.Loss, spec.loss),
         "spp": spec.spp,
         "min error": number(spec.min_error),
@@ -272,6 +308,42 @@ def status(name: str, as_json: bool) -> None:
         "created": timestamp(j.create_time),
         "updated": timestamp(j.update_time),
     })
+
+
+def reference_label(r: pb.Reference) -> str:
+    """``photo.png (mask photo_mask.png)``: a reference's file and what masks it."""
+    masks = [f"mask {r.mask_filename or r.mask_blob}"] if r.mask_blob else []
+    masks += ["its alpha"] if r.alpha_mask else []
+    return (r.filename or r.blob) + (f" ({', '.join(masks)})" if masks else "")
+
+
+@job.command()
+@click.argument("name", metavar="JOB", type=JOB)
+@click.option("--which", type=click.Choice(sorted(WHICH), case_sensitive=False), default="best",
+              show_default=True, help="the lowest-loss iteration, or the last one")
+@json_option
+def result(name: str, which: str, as_json: bool) -> None:
+    """Show a job's result: its iteration, loss, parameter values and exposure gains.
+
+    Values of large parameters (textures, grids) are not printed: 'matopt job export' writes
+    them. The gains (with --fit-exposure) are what each reference's render was multiplied by.
+    """
+    r = connected().jobs.GetJobResult(pb.GetJobResultRequest(name=name,
+                                                             which=WHICH[which.lower()]))
+    if as_json:
+        emit_json(r)
+        return
+    rows = {"job": r.job, "which": which.lower(), "iteration": r.iteration,
+            "loss": number(r.loss)}
+    rows.update({p.key: _floats(p.value) if not p.blob else f"{p.blob} (shape "
+                 f"{list(p.shape)})" for p in r.parameters})
+    rows.update({f"gain of {g.reference or f'sensor {g.sensor}'}": _floats(g.rgb)
+                 for g in r.gains})
+    fields(rows)
+
+
+def _floats(values) -> str:
+    return ", ".join(f"{v:.4g}" for v in values)
 
 
 @job.command("watch")

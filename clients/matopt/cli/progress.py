@@ -116,6 +116,8 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
     text = f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
     for e in record.errors:  # with ground truth
         text += f"; {e.key}: {parameter_error(e)}"
+    for g in record.gains:  # with --fit-exposure
+        text += f", gain {g.reference or g.sensor} " + "/".join(f"{v:.3g}" for v in g.rgb)
     return text
 
 

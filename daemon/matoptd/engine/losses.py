@@ -1,10 +1,10 @@
-"""Image losses. Each maps the renders of one sensor, its reference and a pixel weight (0 where
-the reference is NaN/Inf, 1 elsewhere) to a scalar Dr.Jit tensor with gradients. ``renders``
-says how many independent renders a loss needs.
+"""Image losses. Each maps the renders of one sensor, its reference and a pixel weight (the
+reference's mask and alpha weight in [0, 1], 0 where the reference is NaN/Inf) to a scalar
+Dr.Jit tensor with gradients. ``renders`` says how many independent renders a loss needs.
 
 Means are weighted: mean_w(x) = sum(w * x) / sum(w), so masked pixels neither count nor
-dilute the loss. A reference without NaN/Inf pixels has no weight (``None``): its losses are
-plain means, one reduction less per iteration.
+dilute the loss. A reference whose every pixel counts fully has no weight (``None``): its
+losses are plain means, one reduction less per iteration.
 """
 
 from __future__ import annotations

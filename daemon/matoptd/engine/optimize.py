@@ -22,6 +22,10 @@ Parameters that are positive and unbounded above (radiance, extinction, scales) 
 as u = log(v): a step of size lr changes v by a factor of about e^lr, the same relative change
 at 1e-3 as at 1e3, so a radiance near 1000 and a reflectance near 0.5 can share one learning
 rate, and v can never step below 0. The others are optimized as they are and clipped.
+
+With ``fit_exposure`` each reference also gets an RGB gain g (the photograph's unknown exposure
+and white balance), optimized in log space with the parameters: the loss compares render * g
+with the reference. Gains are not scene parameters: they travel beside theta, as ``gains``.
 """
 
 from __future__ import annotations
@@ -60,8 +64,9 @@ class Setting:
 @dataclass
 class Reference:
     image: mi.TensorXf           # (H, W, 3), linear; masked pixels hold 0
-    weight: mi.TensorXf | None   # (H, W, 3): 0 where the reference was NaN/Inf, else 1; None
-                                 # when every pixel is finite
+    weight: mi.TensorXf | None   # (H, W, 3) in [0, 1]: the mask (and alpha) weight, 0 where the
+                                 # reference was NaN/Inf; None when every pixel counts fully
+    name: str = ""               # the user's file name, for notes
 
     def mask(self) -> np.ndarray:
         """The weight as an array (ones when there is none)."""
@@ -84,6 +89,11 @@ class Config:
     channels: dict[str, int] = field(default_factory=dict)  # of textures and grids, for errors
     image_error_every: int = 0
     image_error_spp: int = 64
+    fit_exposure: bool = False
+
+
+GAIN_LEARNING_RATE = 0.1  # of log(gain): a step changes a gain by about 10%
+GAIN_LIMIT = 10.0         # |log(gain)| bound: a factor of e^10 ~ 22000 either way
 
 
 @dataclass
@@ -95,6 +105,7 @@ class Step:
     stop_reason: str = ""
     errors: dict[str, ParameterError] = field(default_factory=dict)
     image_error: float | None = None
+    gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB gain
 
 
 @dataclass
@@ -104,6 +115,7 @@ class Best:
     iteration: int = -1
     loss: float = math.inf
     values: dict[str, np.ndarray] = field(default_factory=dict)
+    gains: dict[int, np.ndarray] = field(default_factory=dict)
 
 
 def _seed(base: int, iteration: int, slot: int, slots: int) -> int:
@@ -138,8 +150,16 @@ class Optimization:
                 start = np.log(np.maximum(start, LOG_FLOOR))
             self.opt[key] = parameters.assign(self.params[key], start)
             self.opt.set_learning_rate({key: s.learning_rate})
+        # Adam keys of the log gains, by sensor; the first iteration starts them (_start_gains).
+        self.gains = {sensor: f"gain{sensor}" for sensor in self.references
+                      } if config.fit_exposure else {}
+        for key in self.gains.values():
+            self.opt[key] = mi.Float(0.0, 0.0, 0.0)
+            self.opt.set_learning_rate({key: GAIN_LEARNING_RATE})
+        self.rates = {**{k: s.learning_rate for k, s in self.settings.items()},
+                      **{k: GAIN_LEARNING_RATE for k in self.gains.values()}}
         self._apply()
-        self.initial = self.values()
+        self.initial = self.theta()[0]
 
         self.iteration = 0          # the next iteration to run
         self.elapsed = 0.0          # optimizing seconds, excluding pauses and other jobs' turns
@@ -163,11 +183,22 @@ class Optimization:
             self.params[key] = self._value(key)
         self.params.update()
 
-    def values(self) -> dict[str, np.ndarray]:
-        """theta, read in one launch together with the guard counts of the last step."""
+    def theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
+        """theta and the gains, read in one launch together with the guard counts of the last
+        step."""
         values = {k: self._value(k) for k in self.settings}
-        self.flush(*values.values())
-        return {k: parameters.flat(v) for k, v in values.items()}
+        gains = {sensor: dr.exp(self.opt[k]) for sensor, k in self.gains.items()}
+        self.flush(*values.values(), *gains.values())
+        return ({k: parameters.flat(v) for k, v in values.items()},
+                {sensor: np.array(g, dtype=np.float32) for sensor, g in gains.items()})
+
+    def _gained(self, img, sensor: int):
+        """render * gain of the sensor's reference (differentiable in the log gain)."""
+        if sensor not in self.gains:
+            return img
+        gain = dr.exp(self.opt[self.gains[sensor]])
+        channel = dr.arange(mi.UInt32, dr.width(img.array)) % 3
+        return mi.TensorXf(img.array * dr.gather(mi.Float, gain, channel), img.shape)
 
     def flush(self, *also) -> None:
         """Evaluates the pending guard counts (and ``also``) and adds them to the counters."""
@@ -189,14 +220,30 @@ class Optimization:
             img = mi.render(self.scene, self.params, sensor=sensor, spp=self.spp,
                             integrator=self.integrator,
                             seed=_seed(self.config.seed, i, n * renders + b, slots))
-            img = img[..., :3] if img.shape[2] > 3 else img
+            img = self._gained(img[..., :3] if img.shape[2] > 3 else img, sensor)
             images.append(dr.clip(img, 0.0, 1.0) if self.config.clamp else img)
         target = dr.clip(ref.image, 0.0, 1.0) if self.config.clamp else ref.image
         return self.loss.fn(images, target, ref.weight)
 
+    def _start_gains(self) -> None:
+        """Each gain starts at the ratio of the means of reference and initial render, per
+        channel (masked pixels out): from 1, a photograph several stops off would first drag
+        the reflectances to their bounds while the gain catches up."""
+        for sensor, key in self.gains.items():
+            ref = self.references[sensor]
+            w = ref.mask()
+            img = self.render(self.initial, sensor, self.spp)
+            rendered = np.sum(w * img, axis=(0, 1))
+            wanted = np.sum(w * np.asarray(ref.image), axis=(0, 1))
+            ratio = np.where(rendered > 0, wanted / np.maximum(rendered, 1e-30), 1.0)
+            start = np.log(np.clip(ratio, math.exp(-GAIN_LIMIT), math.exp(GAIN_LIMIT)))
+            self.opt[key] = mi.Float(start.astype(np.float32))
+
     def step(self) -> Step:
         start = time.perf_counter()
         i, c = self.iteration, self.config
+        if i == 0 and self.gains:
+            self._start_gains()
         last = i + 1 >= c.iterations
         self._theta = None  # theta_i, read once the first render has evaluated it
         self._judged = None  # the windowed loss of this iteration, once known
@@ -210,20 +257,21 @@ class Optimization:
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
                 self._descend(total, loss, i)
-        theta = self._read_theta()
+        theta, gains = self._read_theta()
         judged = self._judge(loss)
         if judged is not None and judged < self.best.loss:
-            self.best = Best(i, judged, theta)
-        self.last = Best(i, loss, theta)
+            self.best = Best(i, judged, theta, gains)
+        self.last = Best(i, loss, theta, gains)
         reached = self._reached(loss)
         self.iteration = i + 1
         self.elapsed += time.perf_counter() - start
         out = Step(i, loss, theta, last or reached,
                    "min_error" if reached else "iterations" if last else "",
                    {k: parameter_error(theta[k], t, c.channels.get(k, 0))
-                    for k, t in c.truth.items() if k in theta})
+                    for k, t in c.truth.items() if k in theta},
+                   gains=gains)
         if c.image_error_every and (i % c.image_error_every == 0 or out.done):
-            out.image_error = self.image_error(theta)  # off the clock
+            out.image_error = self.image_error(theta, gains)  # off the clock
         return out
 
     def _judge(self, loss: float) -> float | None:
@@ -250,12 +298,12 @@ class Optimization:
                 self._descend(total, losses[-1], i)
         return float(np.mean(losses))
 
-    def _read_theta(self) -> dict[str, np.ndarray]:
-        """theta_i, before the first step changes it. Read after the loss, not before the
-        render: reading syncs, and by then the render has evaluated the values (a log
-        parameter's e^u is recomputed in the one launch that also counts the guards)."""
+    def _read_theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
+        """theta_i and its gains, before the first step changes it. Read after the loss, not
+        before the render: reading syncs, and by then the render has evaluated the values (a
+        log parameter's e^u is recomputed in the one launch that also counts the guards)."""
         if self._theta is None:
-            self._theta = self.values()
+            self._theta = self.theta()
         return self._theta
 
     def _descend(self, total, loss: float, i: int) -> None:
@@ -267,6 +315,8 @@ class Optimization:
         dr.backward(total)
         self._sanitize_gradients()
         self.opt.step()
+        for key in self.gains.values():
+            self.opt[key] = dr.clip(self.opt[key], -GAIN_LIMIT, GAIN_LIMIT)
         for key, s in self.settings.items():
             value = self.opt[key]
             if s.log:
@@ -282,11 +332,11 @@ class Optimization:
         if not self.config.cosine or n < 2:
             return
         f = 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (n - 1)))
-        self.opt.set_learning_rate({k: s.learning_rate * f for k, s in self.settings.items()})
+        self.opt.set_learning_rate({k: rate * f for k, rate in self.rates.items()})
 
     def _sanitize_gradients(self) -> None:
         bad = 0
-        for key in self.settings:
+        for key in self.rates:
             value = self.opt[key]
             grad = dr.grad(value)
             finite = dr.isfinite(grad)
@@ -307,20 +357,25 @@ class Optimization:
         finally:
             self._apply()
 
-    def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
-        """A primal render with the selected parameters set to ``values``."""
+    def render(self, values: dict[str, np.ndarray], sensor: int, spp: int,
+               gains: dict[int, np.ndarray] | None = None) -> np.ndarray:
+        """A primal render with the selected parameters set to ``values``, times the sensor's
+        gain when ``gains`` has one (as the loss compares it)."""
         with self.holding(values), dr.suspend_grad():
             img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
                             integrator=self.integrator, seed=_seed(self.config.seed, 0, 0, 1) + 7)
-        return np.array(img, dtype=np.float32)[..., :3]
+        img = np.array(img, dtype=np.float32)[..., :3]
+        return img * gains[sensor] if gains and sensor in gains else img
 
-    def image_error(self, values: dict[str, np.ndarray]) -> float:
-        """RMSE of renders at ``image_error_spp`` against the references (masked pixels out),
-        over all sensors; its time is not counted as optimizing time."""
+    def image_error(self, values: dict[str, np.ndarray],
+                    gains: dict[int, np.ndarray] | None = None) -> float:
+        """RMSE of renders (times their gains) at ``image_error_spp`` against the references,
+        each pixel by its mask weight, over all sensors; its time is not counted as
+        optimizing time."""
         began = time.perf_counter()
         se = n = 0.0
         for sensor, ref in self.references.items():
-            img = self.render(values, sensor, self.config.image_error_spp)
+            img = self.render(values, sensor, self.config.image_error_spp, gains)
             w = ref.mask()
             se += float(np.sum(w * (img - np.asarray(ref.image)) ** 2))
             n += float(np.sum(w))
@@ -343,23 +398,29 @@ class Optimization:
                               self.nonfinite_steps, self.skipped_steps, self.clamped,
                               self.last.iteration, self.last.loss], dtype=np.float64),
             "recent": np.array(self.recent, dtype=np.float64)}
-        for n, key in enumerate(self.settings):
+        for n, key in enumerate(self.rates):
             value, _, _, (t, m, v, _) = self.opt.state[key]
             arrays[f"value{n}"] = parameters.flat(value)
             arrays[f"t{n}"] = np.asarray(t, dtype=np.uint32)
             arrays[f"m{n}"] = np.asarray(m, dtype=np.float32)
             arrays[f"v{n}"] = np.asarray(v, dtype=np.float32)
             for prefix, kept in (("best", self.best), ("last", self.last)):
-                if key in kept.values:
-                    arrays[f"{prefix}{n}"] = kept.values[key]
+                held = self._kept(kept)
+                if key in held:
+                    arrays[f"{prefix}{n}"] = held[key]
         buf = io.BytesIO()
-        np.savez(buf, keys=np.array(list(self.settings)), **arrays)
+        np.savez(buf, keys=np.array(list(self.rates)), **arrays)
         return buf.getvalue()
+
+    def _kept(self, kept: Best) -> dict[str, np.ndarray]:
+        """A kept iteration's values and gains, by Adam key."""
+        return {**kept.values, **{self.gains[s]: g for s, g in kept.gains.items()
+                                  if s in self.gains}}
 
     def restore(self, data: bytes) -> None:
         z = np.load(io.BytesIO(data), allow_pickle=False)
-        if list(z["keys"]) != list(self.settings):
-            raise ValueError("checkpoint holds other parameters than the job")
+        if list(z["keys"]) != list(self.rates):
+            raise ValueError("checkpoint holds other parameters (or exposure gains) than the job")
         (it, elapsed, best_it, best_loss, nonfinite, skipped, clamped, last_it,
          last_loss) = z["meta"].tolist()
         self.iteration, self.elapsed = int(it), float(elapsed)
@@ -367,8 +428,9 @@ class Optimization:
         self.clamped = int(clamped)
         self.recent = z["recent"].tolist()
         kept: dict[str, dict[str, np.ndarray]] = {"best": {}, "last": {}}
-        for n, key in enumerate(self.settings):
-            self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])
+        for n, key in enumerate(self.rates):
+            self.opt[key] = (parameters.assign(self.params[key], z[f"value{n}"])
+                             if key in self.settings else mi.Float(z[f"value{n}"]))
             value, promoted, lr, (t, m, v, vmax) = self.opt.state[key]
             self.opt.state[key] = (value, promoted, lr,
                                    (type(t)(z[f"t{n}"]), type(m)(z[f"m{n}"]),
@@ -376,6 +438,15 @@ class Optimization:
             for prefix in kept:
                 if f"{prefix}{n}" in z:
                     kept[prefix][key] = z[f"{prefix}{n}"]
-        self.best = Best(int(best_it), float(best_loss), kept["best"]) if kept["best"] else Best()
-        self.last = Best(int(last_it), float(last_loss), kept["last"]) if kept["last"] else Best()
+        by_key = {k: sensor for sensor, k in self.gains.items()}
+
+        def best(iteration, loss, held: dict[str, np.ndarray]) -> Best:
+            if not held:
+                return Best()
+            return Best(int(iteration), float(loss),
+                        {k: v for k, v in held.items() if k in self.settings},
+                        {by_key[k]: v for k, v in held.items() if k in by_key})
+
+        self.best = best(best_it, best_loss, kept["best"])
+        self.last = best(last_it, last_loss, kept["last"])
         self._apply()

@@ -146,7 +146,10 @@ class MitsubaEngine:
 
     def check_references(self, references: list[api.ReferenceInput]) -> None:
         for r in references:
-            images.read_reference(str(self.blob(r.sha256)), r.name)
+            images.load_reference(r, self._blob_path)
+
+    def _blob_path(self, sha256: str) -> str:
+        return str(self.blob(sha256))
 
     # -- jobs -------------------------------------------------------------------------------
 
@@ -162,8 +165,7 @@ class MitsubaEngine:
         notes: list[str] = []
         if settings.resolution:
             loaded = self._scale_filters(settings, loaded, keys, notes)
-        refs = _references(loaded, settings, {r.sensor: (self.blob(r.sha256), r.name)
-                                              for r in settings.references}, notes)
+        refs = _references(loaded, settings, self._blob_path, notes)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         channels = {k: int(listed[k].shape[-1]) for k in keys if k in listed
                     and listed[k].kind in ("texture", "volume_grid") and listed[k].shape}
@@ -172,7 +174,8 @@ class MitsubaEngine:
                         cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
                         clamp=settings.clamp, truth=dict(settings.truth), channels=channels,
                         image_error_every=settings.image_error_every,
-                        image_error_spp=settings.image_error_spp)
+                        image_error_spp=settings.image_error_spp,
+                        fit_exposure=settings.fit_exposure)
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
@@ -180,6 +183,12 @@ class MitsubaEngine:
                              f"sensors rendered: {', '.join(map(str, opt.references))}"
                              + (f" (not rendered: {', '.join(map(str, skipped))})"
                                 if skipped else "")]
+        if opt.gains:
+            opt.notes.append(
+                "exposure gains: one RGB gain per reference, fitted with the parameters (render "
+                "x gain ~ reference), from 1, in log space; a gain trades off against the "
+                "overall scale of reflectance and emission, so keep some of it known and fixed "
+                "(a white surface, the light's radiance) or the split between them is arbitrary")
         if checkpoint is not None:
             try:
                 opt.restore(checkpoint)
@@ -257,7 +266,7 @@ class MitsubaEngine:
             records.append(api.IterationRecord(
                 s.iteration, opt.elapsed, s.loss,
                 {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error))
+                s.errors, s.image_error, s.gains))
             if s.done:
                 done, reason = True, s.stop_reason
                 break
@@ -318,19 +327,22 @@ def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
     return key if key in params else None
 
 
-def _references(scene: mi.Scene, settings: api.JobSettings,
-                files: dict[int, tuple[Path, str]], notes: list[str]) -> dict[int, Reference]:
-    """Reads each reference and sizes its sensor's film: height from ``settings.resolution``
-    (or the film's own), width from the reference's aspect ratio. Each sensor keeps its own
-    size. NaN/Inf pixels are masked out of every loss and counted."""
+def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[str]
+                ) -> dict[int, Reference]:
+    """Reads each reference (with its mask) and sizes its sensor's film: height from
+    ``settings.resolution`` (or the film's own), width from the reference's aspect ratio. Each
+    sensor keeps its own size. Masked and NaN/Inf pixels weigh 0 in every loss; the notes
+    count them."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
     # Sizes before any resize: sensors may share one film, which the first resize changes
     # for all of them, and each sensor's note compares with what its scene declared.
     declared = [tuple(int(x) for x in s.film().crop_size()) for s in sensors]
     refs = {}
-    for index, (path, name) in sorted(files.items()):
-        picture = images.read_reference(str(path), name)
+    for r in sorted(settings.references, key=lambda r: r.sensor):
+        index, name = r.sensor, r.name
+        picture, weight, said = images.load_reference(r, blob)
+        notes += said
         film = sensors[index].film().crop_size()
         width, height = api.reference_film(settings.resolution or declared[index][1],
                                            picture.shape[1], picture.shape[0])
@@ -347,14 +359,11 @@ def _references(scene: mi.Scene, settings: api.JobSettings,
                          + (f"film height {settings.resolution} and " if settings.resolution
                             else "") + f"reference '{name}' ({picture.shape[1]}x"
                          f"{picture.shape[0]})")
-        picture = images.fit(picture, (width, height))
-        valid = np.isfinite(picture).all(axis=2, keepdims=True)
-        if not valid.all():
-            notes.append(f"reference '{name}': {int((~valid).sum())} NaN/Inf pixel(s) masked "
-                         "out of the loss")
-        weight = np.broadcast_to(valid, picture.shape).astype(np.float32)
-        refs[index] = Reference(mi.TensorXf(np.where(weight > 0, picture, 0.0)),
-                                None if valid.all() else mi.TensorXf(weight))
+        picture, weight = images.fit(picture, weight, (width, height))
+        whole = bool(weight.min() >= 1.0)
+        weight = np.repeat(weight[..., None], 3, axis=2)
+        refs[index] = Reference(mi.TensorXf(picture), None if whole else mi.TensorXf(weight),
+                                r.name)
     return refs
 
 
@@ -370,7 +379,9 @@ def _chosen(opt: Optimization) -> list[tuple[str, Best]]:
 def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
                    ) -> dict[str, list[api.Image]]:
     """One sensor's renders per chosen iteration (initial, optimized, reference,
-    |optimized - reference|); initial and reference are made once and shared."""
+    |optimized - reference| by mask weight; with gains, optimized renders are times the
+    iteration's gain, as the loss saw them); initial and reference are made once and
+    shared."""
     opt = run.opt
     ref = opt.references[sensor]
     reference = np.array(ref.image, dtype=np.float32)
@@ -379,7 +390,7 @@ def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
     ref_image = image(reference, sensor, "reference")
     out = {}
     for which, it in chosen:
-        optimized = opt.render(it.values, sensor, spp)
+        optimized = opt.render(it.values, sensor, spp, it.gains)  # as the loss saw it
         error = np.abs(optimized - reference) * ref.mask()
         out[which] = [first, image(optimized, sensor, "optimized"), ref_image,
                       image(error, sensor, "error")]
@@ -406,5 +417,5 @@ def _results(run: Run, chosen: list[tuple[str, Best]], render: bool = True
             files, unplaced = scene_export.optimized_scene(run.main_xml, run.overrides, held,
                                                            it.values, run.shapes)
         out.append(api.Result(which, it.iteration, it.loss, it.values, opt.initial, images_,
-                              files, "scene_optimized.xml", unplaced))
+                              files, "scene_optimized.xml", unplaced, it.gains))
     return out
