@@ -120,7 +120,7 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases. It starts a daemon "
         "per case on a loopback port (the renderer in its worker processes, the API in the "
         "daemon's own: CPU figures name which), uses the GPU when that daemon reports a CUDA "
-        "variant, and needs matplotlib (`pip install 'matopt[plot]'`). The cases are the "
+        "variant, and needs matplotlib (`pip install 'matopt-mitsuba[plot]'`). The cases are the "
         "modules in `bench/`; each module's docstring says exactly what it measures and why.",
         "",
         "## Targets",

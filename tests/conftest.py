@@ -7,6 +7,7 @@ the real command line, signals, restarts and on-disk state.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +21,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 HERE = Path(__file__).parent
+ROOT = HERE.resolve().parent
 sys.path.insert(0, str(HERE))
 
 TOKENS = {"alice": "alice-token-0123456789", "bob": "bob-token-0123456789ab"}
@@ -93,6 +95,19 @@ class _WithMetadata:
     def __getattr__(self, name):
         method = getattr(self._stub, name)
         return lambda request, **kw: method(request, metadata=self._metadata, **kw)
+
+
+@pytest.fixture(scope="session")
+def node_tools() -> Path:
+    """clients/examples/node with its npm packages (grpc-js, proto-loader, buf) installed
+    from the lock file: the example clients and the API's lint and breaking checks use them."""
+    folder = ROOT / "clients" / "examples" / "node"
+    if not shutil.which("npm"):
+        pytest.skip("needs Node.js and npm")
+    if not (folder / "node_modules" / ".bin" / "buf").exists():
+        subprocess.run(["npm", "ci", "--no-audit", "--no-fund"], cwd=folder, check=True,
+                       capture_output=True, timeout=600)
+    return folder
 
 
 @pytest.fixture(scope="session")

@@ -18,7 +18,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 import pytest
 
-pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed (pip install matopt[qt])")
+pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed (pip install matopt-mitsuba[qt])")
 pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
 
 from matopt.qt import pyside_check  # noqa: E402

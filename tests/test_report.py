@@ -116,5 +116,5 @@ def test_report_without_matplotlib_says_what_to_install(daemon, tmp_path):
                   env_extra={"PYTHONPATH": str(blocker)})
     assert done.returncode == 1
     lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "install matopt[plot]" in lines[0], done.stderr
+    assert len(lines) == 1 and "install matopt-mitsuba[plot]" in lines[0], done.stderr
     assert not (tmp_path / "out").exists()

@@ -86,7 +86,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "machine runs in), 'ray://HEAD:10001', 'HOST:PORT', or 'local' for a "
                         "private Ray instance on this machine; one worker per GPU of the cluster, or "
                         "with --workers N (or no GPU in the cluster at start) N CPU workers per "
-                        "machine (needs matopt[daemon,ray])")
+                        "machine (needs matopt-mitsuba[daemon,ray])")
     p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
@@ -263,7 +263,7 @@ def start_ray_workers(args: argparse.Namespace, store: Store):
     try:
         from . import ray_workers
     except ImportError as exc:
-        raise SystemExit(f"matoptd: --ray needs Ray ({exc}); pip install 'matopt[daemon,ray]'")
+        raise SystemExit(f"matoptd: --ray needs Ray ({exc}); pip install 'matopt-mitsuba[daemon,ray]'")
     try:
         ray_workers.connect(args.ray)
     except Exception as exc:  # noqa: BLE001 - Ray raises many kinds; the message says which

@@ -6,7 +6,7 @@ Instead of a socket, two queues: the daemon ``push``es its messages in and ``tak
 worker's out, each a Ray call. Blobs the daemon sends and results the worker returns travel
 through Ray's object store, so no file system is shared with the daemon.
 
-This module runs on the cluster's machines; each needs ``matopt[daemon,ray]`` installed.
+This module runs on the cluster's machines; each needs ``matopt-mitsuba[daemon,ray]`` installed.
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from matopt.cli.session import connected
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-PLOT_HINT = "plots need matplotlib: install matopt[plot] (pip install 'matopt[plot]')"
+PLOT_HINT = "plots need matplotlib: install matopt-mitsuba[plot] (pip install 'matopt-mitsuba[plot]')"
 CSV_NAME = "report.csv"
 LOSS_PNG, ERRORS_PNG, IMAGE_ERROR_PNG = "loss.png", "parameter_error.png", "image_error.png"
 ERROR_PREFIX = "relative_error:"  # CSV column of one parameter's relative error
@@ -270,7 +270,7 @@ def report(names: tuple[str, ...], out_dir: str, labels: tuple[str, ...],
     report.csv has one row per job and iteration (seconds, loss, image error, and each
     parameter's relative error when the job was given ground truth). loss.png and
     parameter_error.png plot them against seconds on a log scale, all jobs in one plot, so
-    methods compare at equal time. Needs matplotlib (install matopt[plot]).
+    methods compare at equal time. Needs matplotlib (install matopt-mitsuba[plot]).
     Prints the files written, one per line.
     """
     if len(labels) > len(names):

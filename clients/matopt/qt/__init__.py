@@ -1,7 +1,7 @@
 """matopt-qt: the desktop client of matoptd (PySide6), the thesis tool's workflow over gRPC.
 
 Like the rest of the ``matopt`` package it imports neither mitsuba nor drjit: the daemon
-renders, this only talks to it. Install with ``pip install "matopt[qt]"``.
+renders, this only talks to it. Install with ``pip install "matopt-mitsuba[qt]"``.
 """
 
 from __future__ import annotations
@@ -18,6 +18,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if (exc.name or "").split(".")[0] not in ("PySide6", "shiboken6"):
             raise
         print(f"matopt-qt: error: PySide6 is not installed ({exc}); "
-              f"install it with: pip install \"matopt[qt]\"", file=sys.stderr)
+              f"install it with: pip install \"matopt-mitsuba[qt]\"", file=sys.stderr)
         return 1
     return run(argv)
