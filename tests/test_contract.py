@@ -32,6 +32,7 @@ def test_breaking_check_catches_a_renamed_enum_value(node_tools, tmp_path):
     """The check is live: a copy of the contract with one value renamed fails it."""
     copy = tmp_path / "proto"
     (copy / "matopt" / "v1").mkdir(parents=True)
+    (copy / "buf.yaml").write_text("version: v2\n")  # a module of its own
     text = (ROOT / "proto" / "matopt" / "v1" / "matopt.proto").read_text()
     (copy / "matopt" / "v1" / "matopt.proto").write_text(
         text.replace("JOB_STATE_PAUSED = 3", "JOB_STATE_ON_HOLD = 3"))
@@ -45,7 +46,8 @@ def test_breaking_check_catches_a_renamed_enum_value(node_tools, tmp_path):
 def test_reflection_lists_the_services(node_tools, protocol, tmp_path):
     d = Daemon(tmp_path / "data", None).start()
     try:
-        out = buf(node_tools, "curl", "--http2-prior-knowledge", "--reflect-protocol", protocol,
+        out = buf(node_tools, "curl", "--protocol", "grpc", "--http2-prior-knowledge",
+                  "--reflect-protocol", protocol,
                   "--list-methods", f"http://{d.address}", timeout=120)
         assert out.returncode == 0, out.stderr
         methods = out.stdout.split()

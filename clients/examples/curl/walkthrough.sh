@@ -16,7 +16,7 @@ SERVER=${1:?usage: walkthrough.sh HOST:PORT [TOKEN] [CA_PEM]}
 TOKEN=${2:-}
 CA=${3:-}
 SCENE=$(cd "$(dirname "$0")/../scene" && pwd)
-KEY=paint.reflectance.value   # the plate's colour in scene/plate.xml
+KEY=plate.bsdf.reflectance.value   # the plate's colour in scene/plate.xml
 TRUTH='[0.7, 0.3, 0.2]'
 ITERATIONS=${ITERATIONS:-40}
 

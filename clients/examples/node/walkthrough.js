@@ -26,7 +26,7 @@ const { values: args } = parseArgs({
   },
 });
 
-const KEY = "paint.reflectance.value"; // the plate's colour in scene/plate.xml
+const KEY = "plate.bsdf.reflectance.value"; // the plate's colour in scene/plate.xml
 const TRUTH = [0.7, 0.3, 0.2];
 const CHUNK = 1 << 20; // UploadBlob takes chunks of at most 1 MiB
 
@@ -35,6 +35,7 @@ const log = (...parts) => console.error(...parts);
 function connect() {
   const definition = protoLoader.loadSync("matopt/v1/matopt.proto", {
     includeDirs: [args.proto],
+    keepCase: true, // field names as in the .proto: missing_sha256, not missingSha256
     enums: String, // "JOB_STATE_SUCCEEDED" rather than 4
     longs: Number,
     defaults: true,
