@@ -385,7 +385,8 @@ def state_name(state: int) -> str:
 
 
 def list_all(method: Callable, request, field_name: str) -> list:
-    """Every item of a paged List call (ListScenes, ListJobs), following next_page_token."""
+    """Every item of a paged call (ListScenes, ListJobs, GetJobHistory), following
+    next_page_token."""
     items: list = []
     while True:
         response = method(request)
@@ -393,3 +394,8 @@ def list_all(method: Callable, request, field_name: str) -> list:
         if not response.next_page_token:
             return items
         request.page_token = response.next_page_token
+
+
+def job_history(client: Client, name: str) -> list[pb.IterationRecord]:
+    """Every iteration a job recorded, across GetJobHistory's pages."""
+    return list_all(client.jobs.GetJobHistory, pb.GetJobHistoryRequest(name=name), "iterations")

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from matopt.client import Client, download_blob, resource_name, short_float, short_floats
+from matopt.client import (Client, download_blob, job_history, resource_name, short_float,
+                           short_floats)
 from matopt_api.v1 import matopt_pb2 as pb
 
 WHICH = {"best": pb.WHICH_BEST, "last": pb.WHICH_LAST}
@@ -124,12 +125,12 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     for f in result.scene_files:
         export.files.append(download_blob(client, f"blobs/{f.sha256}", out / "scene" / f.path))
 
-    history = client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
+    history = job_history(client, name)
     path = out / "history.csv"
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["iteration", "seconds", "loss"])
-        for record in history.iterations:
+        for record in history:
             writer.writerow([record.iteration, f"{record.seconds:.6g}",
                              repr(short_float(record.loss))])
     export.files.append(path)

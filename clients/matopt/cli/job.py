@@ -435,7 +435,7 @@ def history(name: str, as_json: bool) -> None:
     when the job has ground truth (--truth), each parameter's error against it: RMSE, PSNR
     and, for textures and grids, the correlation with the truth per channel.
     """
-    response = connected().jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name))
+    response = pb.GetJobHistoryResponse(iterations=mc.job_history(connected(), name))
     if as_json:
         emit_json(response)
         return

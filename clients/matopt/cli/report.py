@@ -105,7 +105,7 @@ def default_label(job: pb.Job) -> str:
 def job_series(client: mc.Client, name: str, label: str | None = None) -> Series:
     """GetJob and GetJobHistory of one job, as a series."""
     job = client.jobs.GetJob(pb.GetJobRequest(name=name))
-    history = client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
+    history = mc.job_history(client, name)
     truth = truth_of(job.spec)
     return Series(job.name, label or default_label(job), [record_row(r, truth) for r in history])
 
