@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 
 import grpc
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import wait_state
+from conftest import wait_iteration, wait_state
 from scenes import MESH_SCENE, QUAD_OBJ, create_scene, upload
 
 WALLS = ["red.reflectance.value", "green.reflectance.value", "white.reflectance.value"]
@@ -131,17 +132,28 @@ def test_best_result_holds_the_parameters_that_produced_its_loss(stubs):
 
 
 def test_pause_resume_cancel(stubs):
-    _, job = _cornell_job(stubs, 400)
-    wait_state(stubs, job.name, (pb.JOB_STATE_RUNNING,))
+    """A paused job does no iterations for a span in which it did several while running, and
+    a resumed one goes on from where it stopped."""
+    _, job = _cornell_job(stubs, 100_000)
+    # Its pace as it runs here and now, so that the wait below is long enough on a busy machine.
+    began = wait_iteration(stubs, job.name, 2).iteration
+    t0 = time.monotonic()
+    wait_iteration(stubs, job.name, began + 5)
+    span = max(1.5, 2 * (time.monotonic() - t0))  # ~10 iterations' worth, were it running
     stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
     paused = wait_state(stubs, job.name, (pb.JOB_STATE_PAUSED,))
     at = paused.iteration
-    assert stubs.jobs.GetJob(pb.GetJobRequest(name=job.name)).iteration == at  # it stays put
+    time.sleep(span)
+    still = stubs.jobs.GetJob(pb.GetJobRequest(name=job.name))
+    assert (still.state, still.iteration) == (pb.JOB_STATE_PAUSED, at)  # it stays put
+    history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name, page_size=1000))
+    assert [r.iteration for r in history.iterations][-1] == at - 1
     stubs.jobs.ResumeJob(pb.ResumeJobRequest(name=job.name))
-    wait_state(stubs, job.name, (pb.JOB_STATE_RUNNING,))
+    resumed = wait_iteration(stubs, job.name, at + 3)  # it moves again, from where it stopped
+    assert resumed.resumed_from == f"checkpoint at iteration {at}"
     stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
     cancelled = wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,))
-    assert at <= cancelled.iteration < 400
+    assert at + 3 <= cancelled.iteration < 100_000
     # A cancelled job keeps what it found so far.
     best = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
     assert len(best.parameters) == 3
@@ -157,6 +169,10 @@ def test_two_jobs_take_turns(stubs):
     wait_state(stubs, b.name, (pb.JOB_STATE_RUNNING,))
     ja = stubs.jobs.GetJob(pb.GetJobRequest(name=a.name))
     assert ja.state == pb.JOB_STATE_RUNNING and ja.iteration < 5000  # b started before a finished
+    # and a gets its turn again after b's: neither is starved
+    jb = wait_iteration(stubs, b.name, 1)
+    wait_iteration(stubs, a.name, ja.iteration + 1)
+    wait_iteration(stubs, b.name, jb.iteration + 1)
     for job in (a, b):
         stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
         wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,))

@@ -203,7 +203,9 @@ def test_a_paused_job_goes_on_with_the_losses_it_would_have_had(two_users):
     at = wait_state(alice, paused.name, (pb.JOB_STATE_PAUSED,)).iteration
     assert 12 <= at < 40
     alice.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
-    wait_state(alice, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+    done = wait_state(alice, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+    # It did go through its checkpoint (else the comparison below proves nothing).
+    assert done.resumed_from == f"checkpoint at iteration {at}", done.resumed_from
     losses = [[r.loss for r in alice.jobs.GetJobHistory(pb.GetJobHistoryRequest(
         name=j.name)).iterations] for j in (plain, paused)]
     assert len(losses[0]) == len(losses[1]) == 40

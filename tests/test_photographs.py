@@ -191,9 +191,12 @@ def test_paused_job_goes_on_with_the_gains_it_would_have_had(stubs, cornell, tmp
         paused = own.jobs.CreateJob(pb.CreateJobRequest(spec=job_spec))
         wait_iteration(own, paused.name, 8)
         own.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
-        assert 8 <= wait_state(own, paused.name, (pb.JOB_STATE_PAUSED,)).iteration < 30
+        at = wait_state(own, paused.name, (pb.JOB_STATE_PAUSED,)).iteration
+        assert 8 <= at < 30
         own.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
-        wait_state(own, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+        done = wait_state(own, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+        # It did go through its checkpoint (else the comparison below proves nothing).
+        assert done.resumed_from == f"checkpoint at iteration {at}", done.resumed_from
         runs = [own.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=j.name)).iterations
                 for j in (plain, paused)]
         assert len(runs[0]) == len(runs[1]) == 30

@@ -144,17 +144,20 @@ def test_a_job_stays_on_its_worker_and_new_jobs_go_to_the_least_loaded():
     second = s.next("w1")
     assert (second.kind, second.job) == ("load", "b")
     s.done(second)
+    steps = collections.Counter()
     for _ in range(50):
         for w in ("w0", "w1"):
             action = s.next(w)
             if action is not None:
                 assert action.kind == "step" or action.kind == "task"
                 assert action.job == {"w0": "a", "w1": "b"}[w] or action.job == ""
+                steps[action.job] += action.kind == "step"
                 clock.t += 0.5
                 s.done(action, iterations=action.n)
             busy = s.workers[w].action
             if busy is not None:
                 s.done(busy, iterations=busy.n)
+    assert steps["a"] > 10 and steps["b"] > 10, steps  # both kept stepping, each on its own
 
 
 def test_pause_and_cancel_act_at_the_next_iteration_boundary():

@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import grpc
@@ -16,6 +17,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 from conftest import TOKENS, Daemon, Stubs, wait_state
 
 ROOT = Path(__file__).resolve().parent.parent
+RUNNABLE = (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING)
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +54,7 @@ def test_users_see_and_control_only_their_own_jobs(shared):
     scene = alice.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32", "resy": "32"}))
     ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=8)).images[0]
     job = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=200, references=[pb.Reference(blob=ref.exr_blob)],
+        scene=scene.name, iterations=100000, references=[pb.Reference(blob=ref.exr_blob)],
         parameters=[pb.ParameterSpec(key="red.reflectance.value")])))
 
     for call, req in ((bob.jobs.GetJob, pb.GetJobRequest(name=job.name)),
@@ -67,8 +69,16 @@ def test_users_see_and_control_only_their_own_jobs(shared):
         assert err.value.code() == grpc.StatusCode.NOT_FOUND, call
     assert job.name not in [j.name for j in bob.jobs.ListJobs(pb.ListJobsRequest()).jobs]
     assert job.name in [j.name for j in alice.jobs.ListJobs(pb.ListJobsRequest()).jobs]
-    # Bob's attempts changed nothing.
-    assert alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING)
+    # Bob's attempts changed nothing. A pause or cancel acts at an iteration boundary, a
+    # fraction of a second later: the job must be seen running well past where it is now.
+    at = alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).iteration
+    deadline = time.time() + 180
+    while True:
+        now = alice.jobs.GetJob(pb.GetJobRequest(name=job.name))
+        if now.iteration >= at + 20 or now.state not in RUNNABLE or time.time() > deadline:
+            break
+        time.sleep(0.05)
+    assert (now.state, now.iteration >= at + 20) == (pb.JOB_STATE_RUNNING, True), now
     alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
     wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED,))
     alice.close()
