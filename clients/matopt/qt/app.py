@@ -16,7 +16,6 @@ import logging
 import os
 import sys
 import time
-import uuid
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -28,12 +27,13 @@ from PySide6.QtWidgets import (QApplication, QDockWidget, QFileDialog, QGroupBox
                                QToolButton, QVBoxLayout, QWidget)
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.export import export_job
 from matopt.qt import pyside_check
 from matopt.qt.banner import Banner
 from matopt.qt.connection import (ConnectDialog, Connection, ConnectionSettings, SettingsStore)
 from matopt.qt.images import BlobCache, read_image
-from matopt.qt.job_settings import JobSettings
+from matopt.qt.job_settings import JobSettingsForm
 from matopt.qt.job_view import JobView
 from matopt.qt.jobs_list import JobsList
 from matopt.qt.params_table import ParamsTable
@@ -48,29 +48,16 @@ SCENE_PREVIEW_SPP = 16
 
 
 def parse_overrides(text: str) -> dict[str, str]:
-    """``"resx=64 resy=64"`` (spaces or commas) -> {"resx": "64", "resy": "64"}."""
-    out = {}
-    for part in text.replace(",", " ").split():
-        name, sep, value = part.partition("=")
-        if not sep or not name:
-            raise ValueError(f"'{part}' is not of the form NAME=VALUE")
-        out[name] = value
-    return out
+    """The XML-defaults field: ``"resx=64 resy=64"`` -> {"resx": "64", "resy": "64"}."""
+    return workflow.parse_overrides(workflow.split_overrides(text))
 
 
 def _create_scene(client: mc.Client, path: str | None, overrides: dict[str, str],
                   on_upload: Callable[[str, int], None]
                   ) -> tuple[pb.Scene, list[pb.Parameter]]:
-    """Worker thread: uploads the bundle (files the daemon lacks only), creates the scene,
-    lists its parameters. ``path`` None is the built-in Cornell box."""
-    request = pb.CreateSceneRequest(overrides=overrides, request_id=str(uuid.uuid4()))
-    if path:
-        main_file, files = mc.upload_bundle(client, path, overrides, on_upload)
-        request.main_file = main_file
-        request.files.extend(files)
-    # No deadline: loading a large scene may take minutes; the connection's probe notices a
-    # daemon that is gone meanwhile.
-    scene = client.scenes.CreateScene(request)
+    """Worker thread: creates the scene (``path`` None: the built-in Cornell box) and lists
+    its parameters."""
+    scene = workflow.create_scene(client, path, overrides, on_upload=on_upload)
     parameters = client.scenes.ListSceneParameters(
         pb.ListSceneParametersRequest(name=scene.name), timeout=CALL_TIMEOUT_S).parameters
     return scene, list(parameters)
@@ -241,7 +228,7 @@ class MainWindow(QMainWindow):
         lower.addWidget(refs_box, 3)
         settings_box = QGroupBox("Optimization")
         settings_layout = QVBoxLayout(settings_box)
-        self.settings = JobSettings()
+        self.settings = JobSettingsForm()
         settings_layout.addWidget(self.settings)
         self.kept_label = QLabel("")
         self.kept_label.setWordWrap(True)
@@ -383,6 +370,7 @@ class MainWindow(QMainWindow):
                 f"{info.variant} on {info.device}")
 
     def _connected(self, info: pb.ServerInfo) -> None:
+        self.settings.set_choices(workflow.choices(info))
         if self.banner.level == "error":
             self.banner.clear()
         self.connection_label.setText(self._describe_server(info))
@@ -393,6 +381,7 @@ class MainWindow(QMainWindow):
         self._update_actions()
 
     def _restored(self, info: pb.ServerInfo) -> None:
+        self.settings.set_choices(workflow.choices(info))  # the daemon may have been updated
         self.banner.clear()
         self.connection_label.setText(self._describe_server(info))
         self.status(f"connection to matoptd at {self.connection.target} restored")
@@ -550,15 +539,10 @@ class MainWindow(QMainWindow):
         if not self.references.references():
             raise ValueError(f"choose the reference images: one per sensor "
                              f"({len(self.scene.sensors)} for this scene)")
-        spec = pb.JobSpec()
-        if self.base_spec is not None and self.base_spec.scene == self.scene.name:
-            spec.CopyFrom(self.base_spec)
-            spec.ClearField("parameters")
-            spec.ClearField("references")
-        spec.scene = self.scene.name
-        spec.parameters.extend(parameters)
-        self.settings.fill(spec)
-        return spec
+        base = self.base_spec if (self.base_spec is not None
+                                  and self.base_spec.scene == self.scene.name) else None
+        return workflow.build_spec(self.scene.name, parameters, self.settings.values(),
+                                   base=base)
 
     def _set_base_spec(self, spec: pb.JobSpec | None, source: str = "") -> None:
         self.base_spec = spec
@@ -580,18 +564,10 @@ class MainWindow(QMainWindow):
         initial_from = self.initial_from
 
         def create(c: mc.Client) -> pb.Job:
-            local = [r.path for r in references if r.path]
-            digests = dict(zip(local, mc.upload_files(
-                c, local, lambda f, n: self._upload_note.emit(f"uploading {f}…")))) if local \
-                else {}
-            for r in references:
-                blob = mc.blob_name(digests[r.path]) if r.path else r.blob
-                spec.references.append(pb.Reference(sensor=r.sensor, blob=blob,
-                                                    filename=r.filename))
-            request = pb.CreateJobRequest(spec=spec, request_id=str(uuid.uuid4()))
-            if initial_from is not None:  # large parameters continue from the result too
-                request.initial_from_job, request.initial_from_which = initial_from
-            return c.jobs.CreateJob(request, timeout=CALL_TIMEOUT_S * 2)
+            # initial_from: large parameters continue from the result too
+            return workflow.start_job(
+                c, spec, references, initial_from,
+                lambda f, n: self._upload_note.emit(f"uploading {f}…"), CALL_TIMEOUT_S * 2)
 
         def done(job: pb.Job) -> None:
             self._starting = False
@@ -667,8 +643,10 @@ class MainWindow(QMainWindow):
             self._update_actions()
             return
         self.view.plot.set_target(job.spec.min_error if job.spec.HasField("min_error") else None)
-        if job.iteration:
-            self.view.plot.set_best_iteration(job.best_iteration)
+        best = workflow.best(job)
+        if best is not None:
+            self.best_loss = best[1]
+            self.view.plot.set_best_iteration(best[0])
         self._update_title()
         self._load_history(job.name)
         self._watch(job.name)
@@ -757,9 +735,10 @@ class MainWindow(QMainWindow):
         self.job = job
         self.jobs.update_job(job)
         self.view.show_job(job)
-        if job.iteration and job.best_iteration >= 0:
-            self.best_loss = job.best_loss
-            self.view.plot.set_best_iteration(job.best_iteration)
+        best = workflow.best(job)  # the daemon's, sent after each batch of iterations
+        if best is not None:
+            self.best_loss = best[1]
+            self.view.plot.set_best_iteration(best[0])
         self._update_title()
         self._update_actions()
         changed = previous is None or previous.state != job.state
@@ -785,12 +764,6 @@ class MainWindow(QMainWindow):
         if self.latest is not None and record.iteration < self.latest.iteration:
             return
         self.latest = record
-        # The daemon's best is the lowest loss, except for dual_buffer (a windowed mean of the
-        # noisy estimates): that one only comes with the job's state.
-        if (record.loss == record.loss and self.job is not None
-                and self.job.spec.loss != pb.LOSS_DUAL_BUFFER
-                and (self.best_loss is None or record.loss < self.best_loss)):
-            self.best_loss = record.loss
         done = record.iteration + 1  # records count from 0
         self.view.progress.setValue(min(done, self.view.progress.maximum()))
         self.view.set_numbers(done, record.loss, self.best_loss, record.seconds)
@@ -982,19 +955,19 @@ class MainWindow(QMainWindow):
             self._wanted[id(pane)] = None
             pane.set_placeholder(f"no reference image for sensor {sensor}")
             return
-        key = ref.path or ref.blob or ""
+        key = ref.image
         if pane.key == key:
             return
         exr_note = (f"{ref.filename}: OpenEXR, shown once the job has results"
                     if ref.filename.lower().endswith(".exr") else "cannot display this image")
         self._wanted[id(pane)] = key
-        if ref.path:
-            path = ref.path
+        if not ref.on_server:
+            path = ref.image
             self.tasks.submit(lambda: read_image(path),
                               lambda image: self._deliver(pane, key, image, ref.filename,
                                                           exr_note))
         else:
-            blob = ref.blob or ""
+            blob = ref.image
             self._call("fetching the reference image",
                        lambda c: self.cache.image(c, blob),
                        lambda image: self._deliver(pane, key, image, ref.filename, exr_note))
