@@ -8,6 +8,8 @@ import re
 import shutil
 from types import SimpleNamespace
 
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # the Qt form, in one test
+
 import pytest
 from click.testing import CliRunner
 
@@ -101,9 +103,15 @@ def cli_spec(monkeypatch, *args: str) -> tuple[pb.JobSpec, str]:
     return (created[0] if created else None), out.output
 
 
-def test_cli_and_qt_build_the_same_spec_from_the_same_settings(monkeypatch, qtbot):
-    pytest.importorskip("PySide6.QtWidgets")
+def test_cli_and_qt_build_the_same_spec_from_the_same_settings(monkeypatch, request):
+    pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed")
+    pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
+    from matopt.qt import pyside_check
+    if pyside_check.none_refcount_bug():
+        pytest.skip(pyside_check.problem() or "broken PySide6")
     from matopt.qt.job_settings import JobSettingsForm
+
+    qtbot = request.getfixturevalue("qtbot")
 
     spec, _ = cli_spec(monkeypatch, "--loss", "DUAL_BUFFER", "--schedule", "constant",
                        "--sensor-mode", "step_per_sensor", "--iterations", "7", "--spp", "3",
@@ -177,3 +185,26 @@ def test_job_status_prints_sensor_indices(monkeypatch):
     out = CliRunner().invoke(cli, ["job", "status", "jobs/x"]).output
     assert re.search(r"^sensors rendered: +#0$", out, re.MULTILINE), out
     assert "sensors:" not in out
+
+
+def test_job_watch_prints_the_job_again_only_when_its_state_changes(monkeypatch):
+    done = running(2, total=2, best=1)
+    done.state = pb.JOB_STATE_SUCCEEDED
+    events = [pb.JobEvent(job=running(0, total=2)),
+              pb.JobEvent(iteration=pb.IterationRecord(iteration=0, loss=0.5)),
+              pb.JobEvent(job=running(1, total=2, best=0)),  # after a batch: its best
+              pb.JobEvent(iteration=pb.IterationRecord(iteration=1, loss=0.25)),
+              pb.JobEvent(job=done)]
+
+    def follow(client, name, on_event):
+        for event in events:
+            on_event(event)
+        return done
+
+    monkeypatch.setattr(cli_job, "connected", lambda: FakeClient())
+    monkeypatch.setattr(cli_job, "follow", follow)
+    out = CliRunner().invoke(cli, ["job", "watch", "jobs/x"]).stdout.splitlines()
+    assert out[0].startswith("jobs/x RUNNING 0/2")
+    assert [line.split(" loss")[0] for line in out[1:3]] == ["iteration 0/2", "iteration 1/2"]
+    assert out[3].startswith("jobs/x SUCCEEDED 2/2") and "best 0.25 at iteration 1" in out[3]
+    assert len(out) == 4
