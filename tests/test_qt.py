@@ -29,10 +29,10 @@ if pyside_check.none_refcount_bug():
 from PySide6.QtCore import QSettings, QTimer  # noqa: E402
 
 from matopt import client as mc  # noqa: E402
-from matopt.qt import app as qt_app  # noqa: E402
 from matopt.qt.app import MainWindow  # noqa: E402
 from matopt.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
 from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
+from matopt.qt.scene_control import parse_overrides  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 from conftest import TOKENS, Daemon  # noqa: E402
@@ -493,8 +493,7 @@ def test_qt_client_needs_neither_mitsuba_nor_drjit_nor_the_daemon():
 
 
 def test_parse_overrides():
-    assert qt_app.parse_overrides("resx=64, resy=64 spp=4") == {"resx": "64", "resy": "64",
-                                                               "spp": "4"}
+    assert parse_overrides("resx=64, resy=64 spp=4") == {"resx": "64", "resy": "64", "spp": "4"}
     with pytest.raises(ValueError, match="'resx' is not of the form NAME=VALUE"):
-        qt_app.parse_overrides("resx")
+        parse_overrides("resx")
 

@@ -486,7 +486,10 @@ class Runner:
             job = self.store.get_job(job.name)
             convert.progress_to_job(job, progress)
             self.store.put_job(job)
-        self._publish(job.name, [pb.JobEvent(iteration=r) for r in records])
+        # The job after its iterations: clients show its best_iteration/best_loss rather than
+        # compute their own (for dual_buffer the best is a windowed mean, not a record's loss).
+        self._publish(job.name, [pb.JobEvent(iteration=r) for r in records]
+                      + [pb.JobEvent(job=job)])
         if progress.done:
             self._end(job, action, pb.JOB_STATE_SUCCEEDED, progress.stop_reason, len(records))
             return

@@ -88,8 +88,8 @@ def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) 
 def info(as_json: bool) -> None:
     """Show what the daemon runs.
 
-    Version, Mitsuba variant, device, the user your token belongs to, losses, integrators,
-    and its renderer workers: state, device, process, memory against its limit, jobs (only
+    Version, Mitsuba variant, device, the user your token belongs to, the losses, schedules
+    and sensor modes jobs accept, integrators, and its renderer workers: state, device, process, memory against its limit, jobs (only
     yours by name) and restarts.
     """
     client = connected()
@@ -104,6 +104,8 @@ def info(as_json: bool) -> None:
         "device": info.device,
         "user": info.user,
         "losses": ", ".join(info.losses),
+        "schedules": ", ".join(info.schedules),
+        "sensor modes": ", ".join(info.sensor_modes),
         "integrators": ", ".join(info.integrators),
         "capabilities": ", ".join(info.capabilities),
         # A daemon older than the workers list reports none: say nothing rather than "none".

@@ -10,15 +10,14 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-import uuid
 from pathlib import Path
 
 import click
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.cli.output import note, number, table
 from matopt.cli.progress import JobProgress, outcome
-from matopt.cli.scene import create_scene
 from matopt.cli.session import Settings
 from matopt.export import export_job
 from matopt.local_daemon import LocalDaemon
@@ -78,7 +77,8 @@ def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
     """
     with contextlib.ExitStack() as stack:
         client = _client(stack)
-        scene = create_scene(client, None, {"resx": str(resolution), "resy": str(resolution)})
+        scene = workflow.create_scene(client, None, {"resx": str(resolution),
+                                                     "resy": str(resolution)})
         note(f"created {scene.name} (built-in Cornell box, {resolution}x{resolution})")
         truth = {p.key: list(p.value) for p in client.scenes.ListSceneParameters(
             pb.ListSceneParametersRequest(name=scene.name)).parameters}
@@ -93,11 +93,11 @@ def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
         if reference is None or not reference.exr_blob:
             raise click.ClickException(f"rendering {scene.name} returned no image of sensor 0")
 
-        spec = pb.JobSpec(
-            scene=scene.name, iterations=iterations, spp=spp,
-            references=[pb.Reference(blob=reference.exr_blob, filename="reference.exr")],
-            parameters=[pb.ParameterSpec(key=k, initial_value=START) for k in KEYS])
-        job = client.jobs.CreateJob(pb.CreateJobRequest(spec=spec, request_id=str(uuid.uuid4())))
+        spec = workflow.build_spec(
+            scene.name, [pb.ParameterSpec(key=k, initial_value=START) for k in KEYS],
+            workflow.JobSettings(iterations=iterations, spp=spp))
+        job = workflow.start_job(client, spec, [workflow.ReferenceFile(
+            reference.exr_blob, filename="reference.exr")])
         note(f"started {job.name}")
         outcome(_run(client, job.name))
 

@@ -3,27 +3,22 @@
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 from typing import Sequence
 
 import click
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.cli.output import (best, emit_json, fields, json_option, note, number,
                                 parameter_error, table, timestamp, uploading, warn)
 from matopt.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
-from matopt.cli.progress import JobProgress, describe, follow, outcome
+from matopt.cli.progress import JobProgress, describe, describe_state, follow, outcome
 from matopt.cli.session import Group, connected
 from matopt.export import WHICH, export_job
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-LOSSES = {"mse": pb.LOSS_MSE, "dual_buffer": pb.LOSS_DUAL_BUFFER, "mae": pb.LOSS_MAE,
-          "brightness_independent_mse": pb.LOSS_BRIGHTNESS_INDEPENDENT_MSE,
-          "multiscale_mse": pb.LOSS_MULTISCALE_MSE}
-SENSOR_MODES = {"accumulate": pb.SENSOR_MODE_ACCUMULATE, "step_per_sensor": pb.SENSOR_MODE_STEP_PER_SENSOR}
-SCHEDULES = {"cosine": pb.SCHEDULE_COSINE, "constant": pb.SCHEDULE_CONSTANT}
 STATES = enums.short_names(pb.JobState)
 
 
@@ -103,35 +98,39 @@ def upload_values(client: mc.Client, scene: str, specs: Sequence[pb.ParameterSpe
 NO_MASK, ALPHA_MASK = "-", "@alpha"  # --mask values that name no file
 
 
-def upload_references(client: mc.Client, refs: Sequence[tuple[int | None, str]],
-                      masks: Sequence[str] = ()) -> list[pb.Reference]:
-    """References for the given images, with the i-th mask (a file, ``@alpha`` or ``-``) for
-    the i-th image; files are uploaded together, a ``blobs/<sha256>`` already on the daemon is
-    reused."""
-    masks = list(masks) or [NO_MASK] * len(refs)
-    files = [image for _, image in refs] + [m for m in masks if m not in (NO_MASK, ALPHA_MASK)]
-    local = list(dict.fromkeys(f for f in files if not _is_blob(f)))
-    digests = dict(zip(local, mc.upload_files(client, local, uploading)))
-
-    def blob(path: str) -> tuple[str, str]:
-        if _is_blob(path):
-            return path, path
-        return mc.blob_name(digests[path]), os.path.basename(path)
-
-    out = []
-    for (sensor, image), mask in zip(refs, masks):
-        name, filename = blob(image)
-        ref = pb.Reference(blob=name, filename=filename, alpha_mask=mask == ALPHA_MASK)
-        if mask not in (NO_MASK, ALPHA_MASK):
-            ref.mask_blob, ref.mask_filename = blob(mask)
-        if sensor is not None:
-            ref.sensor = sensor
-        out.append(ref)
+def reference_files(refs: Sequence[tuple[int | None, str]],
+                    masks: Sequence[str]) -> list[workflow.ReferenceFile]:
+    """The --ref images with the --mask in the same position (a file, a blob, ``@alpha`` or
+    ``-``), each local file checked before anything is uploaded."""
+    if masks and len(masks) != len(refs):
+        raise click.BadParameter(f"got {len(masks)} --mask for {len(refs)} --ref: give one per "
+                                 f"--ref, in the same order ('{NO_MASK}' for none)",
+                                 param_hint="--mask")
+    out = [workflow.ReferenceFile(image=image, sensor=sensor,
+                                  mask=None if mask in (NO_MASK, ALPHA_MASK) else mask,
+                                  alpha_mask=mask == ALPHA_MASK)
+           for (sensor, image), mask in zip(refs, list(masks) or [NO_MASK] * len(refs))]
+    try:
+        workflow.check_reference_files(out)
+    except workflow.MissingFile as exc:
+        raise click.BadParameter(str(exc), param_hint="--mask" if exc.mask else "--ref") from None
     return out
 
 
-def _is_blob(image: str) -> bool:
-    return image.startswith("blobs/") and not os.path.exists(image)
+def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
+    """The loss, schedule and sensor mode against what this daemon offers ('matopt info'),
+    lower-cased; a wrong one is a usage error naming the choices."""
+    offered = workflow.choices(client.info or client.server.GetServerInfo(
+        pb.GetServerInfoRequest()))
+    for name, allowed in (("loss", offered.losses), ("schedule", offered.schedules),
+                          ("sensor_mode", offered.sensor_modes)):
+        value = getattr(settings, name)
+        if value is not None:
+            try:
+                setattr(settings, name, workflow.check_choice(name.replace("_", " "), value,
+                                                              allowed))
+            except ValueError as exc:
+                raise click.BadParameter(str(exc), param_hint="--" + name.replace("_", "-"))
 
 
 @job.command()
@@ -156,18 +155,20 @@ def _is_blob(image: str) -> bool:
 @click.option("--init", "inits", multiple=True, type=Values(npy=True),
               help="start value of a parameter instead of the scene's: KEY=v1,v2,... or "
                    "KEY=@values.npy (textures, grids)")
-@click.option("--loss", type=click.Choice(sorted(LOSSES), case_sensitive=False),
-              help="image loss [daemon default: mse]")
-@click.option("--schedule", type=click.Choice(sorted(SCHEDULES), case_sensitive=False),
-              help="learning-rate schedule [daemon default: cosine]")
+@click.option("--loss", metavar="NAME",
+              help="image loss, one of 'matopt info' (mse, dual_buffer, mae, ...) "
+                   "[daemon default: mse]")
+@click.option("--schedule", metavar="NAME",
+              help="learning-rate schedule, one of 'matopt info' (cosine, constant) "
+                   "[daemon default: cosine]")
 @click.option("--iterations", type=int, help="optimization steps [daemon default: 100]")
 @click.option("--spp", type=int, help="samples per pixel of each step [daemon default: 16]")
 @click.option("--min-error", type=float,
-              help="stop once the loss is below this [daemon default: 0.001]")
+              help="stop once the loss is below this [daemon default: 0, off]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")
-@click.option("--sensor-mode", type=click.Choice(sorted(SENSOR_MODES), case_sensitive=False),
-              help="one step from all sensors' gradients, or one per sensor "
-                   "[daemon default: accumulate]")
+@click.option("--sensor-mode", metavar="NAME",
+              help="one step from all sensors' gradients (accumulate), or one per sensor "
+                   "(step_per_sensor), as 'matopt info' lists them [daemon default: accumulate]")
 @click.option("--clamp", is_flag=True, help="clamp render and reference to [0, 1] (LDR)")
 @click.option("--resolution", type=int,
               help="film height in pixels; widths follow each reference's aspect ratio")
@@ -199,33 +200,22 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
     --fit-exposure fits each photograph's exposure and white balance ('matopt job result'
     shows the gains).
     """
-    given = {"iterations": iterations, "spp": spp, "min_error": min_error, "seed": seed,
-             "loss": LOSSES[loss.lower()] if loss else None,
-             "schedule": SCHEDULES[schedule.lower()] if schedule else None,
-             "learning_rate": next((rate for key, rate in rates if key is None), None),
-             "sensor_mode": SENSOR_MODES[sensor_mode.lower()] if sensor_mode else None,
-             "clamp": clamp or None, "film_height": resolution,
-             "image_error_every": image_error_every, "fit_exposure": fit_exposure or None}
-    spec = pb.JobSpec(scene=scene, parameters=parameter_specs(keys, rates, ranges, inits),
-                      **{k: v for k, v in given.items() if v is not None})
-    spec.ground_truth.extend(pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "")
-                             for t in truths)
-    for _, image in refs:
-        if not _is_blob(image) and not os.path.isfile(image):
-            raise click.BadParameter(f"'{image}' is not a file", param_hint="--ref")
-    if masks and len(masks) != len(refs):
-        raise click.BadParameter(f"got {len(masks)} --mask for {len(refs)} --ref: give one per "
-                                 f"--ref, in the same order ('{NO_MASK}' for none)",
-                                 param_hint="--mask")
-    for mask in masks:
-        if mask not in (NO_MASK, ALPHA_MASK) and not _is_blob(mask) and not os.path.isfile(mask):
-            raise click.BadParameter(f"'{mask}' is not a file", param_hint="--mask")
+    settings = workflow.JobSettings(
+        loss=loss, schedule=schedule, sensor_mode=sensor_mode, iterations=iterations, spp=spp,
+        min_error=min_error, seed=seed,
+        learning_rate=next((rate for key, rate in rates if key is None), None),
+        clamp=clamp or None, film_height=resolution, image_error_every=image_error_every,
+        fit_exposure=fit_exposure or None)
+    parameters = parameter_specs(keys, rates, ranges, inits)
+    truth = [pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "") for t in truths]
+    references = reference_files(refs, masks)
     client = connected()
+    checked_settings(client, settings)
+    spec = workflow.build_spec(scene, parameters, settings, ground_truth=truth)
     upload_values(client, scene, spec.parameters, spec.ground_truth)
-    spec.references.extend(upload_references(client, refs, masks))
-    created = client.jobs.CreateJob(pb.CreateJobRequest(
-        spec=spec, request_id=str(uuid.uuid4()), initial_from_job=from_job or "",
-        initial_from_which=WHICH[from_which.lower()]))
+    created = workflow.start_job(client, spec, references,
+                                 (from_job, WHICH[from_which.lower()]) if from_job else None,
+                                 uploading)
     for line in created.notes:  # what the daemon saw fit to say at once: large parameters
         warn(line)
     if as_json and not wait:
@@ -298,7 +288,7 @@ def status(name: str, as_json: bool) -> None:
         "spp": spec.spp,
         "min error": number(spec.min_error),
         "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),
-        "sensors": ", ".join(map(str, j.sensors_rendered)),
+        "sensors rendered": workflow.sensor_indices(j.sensors_rendered),
         "skipped steps": j.skipped_steps,
         "clamped components": j.clamped_components,
         "notes": "\n  ".join(j.notes) or None,
@@ -337,7 +327,7 @@ def result(name: str, which: str, as_json: bool) -> None:
             "loss": number(r.loss)}
     rows.update({p.key: _floats(p.value) if not p.blob else f"{p.blob} (shape "
                  f"{list(p.shape)})" for p in r.parameters})
-    rows.update({f"gain of {g.reference or f'sensor {g.sensor}'}": _floats(g.rgb)
+    rows.update({f"gain of {g.reference or f'sensor #{g.sensor}'}": _floats(g.rgb)
                  for g in r.gains})
     fields(rows)
 
@@ -356,16 +346,22 @@ def watch_job(name: str, as_json: bool) -> None:
     One line per event (state changes and iterations). The exit status is non-zero if the job
     fails or is cancelled.
     """
-    total = 0
+    total, shown = 0, ""
 
     def show(event: pb.JobEvent) -> None:
-        nonlocal total
-        if event.HasField("job"):
-            total = event.job.spec.iterations
+        nonlocal total, shown
         if as_json:
             emit_json(event, compact=True)
-        else:
-            click.echo(describe(event, total))
+            return
+        if event.HasField("job"):
+            total = event.job.spec.iterations
+            # The job also comes after each batch of iterations (for its best): a line only
+            # when its state, phase or error reads differently from the last one printed.
+            changed = describe_state(event.job)
+            if changed == shown:
+                return
+            shown = changed
+        click.echo(describe(event, total))
 
     outcome(follow(connected(), name, show))
 

@@ -15,6 +15,7 @@ import click
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
+from matopt import workflow
 from matopt.client import short_float
 
 json_option = click.option("--json", "as_json", is_flag=True, help="print JSON for scripts")
@@ -98,10 +99,10 @@ def uploading(label: str, n: int) -> None:
 
 
 def best(job) -> str | None:
-    """A job's best loss and where it was reached; None before its first iteration."""
-    if job.iteration <= 0 or job.best_iteration < 0:
-        return None
-    return f"{number(job.best_loss)} at iteration {job.best_iteration}"
+    """A job's best loss and where it was reached (the daemon's); None before its first
+    iteration."""
+    reached = workflow.best(job)
+    return None if reached is None else f"{number(reached[1])} at iteration {reached[0]}"
 
 
 def values(components: Sequence[float], limit: int = 4) -> str:

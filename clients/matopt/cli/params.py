@@ -1,4 +1,5 @@
-"""Parsing of the CLI's argument syntaxes (NAME=VALUE, KEY=v1,v2, KEY=MIN:MAX, [N=]IMG).
+"""Parsing of the CLI's argument syntaxes (KEY=v1,v2, KEY=MIN:MAX, [N=]IMG; NAME=VALUE is
+``workflow.parse_overrides``, shared with the Qt app).
 
 Only the syntax is checked here: whether a key exists or a value is legal is the daemon's to
 say, so that the CLI and the daemon can never disagree about it.
@@ -46,17 +47,6 @@ def _float(text: str, whole: str, param, ctx, kind: click.ParamType) -> float:
         return float(text)
     except ValueError:
         kind.fail(f"'{text}' in '{whole}' is not a number", param, ctx)
-
-
-class Assignment(click.ParamType):
-    """``NAME=VALUE`` with VALUE a string (XML defaults such as resx=256)."""
-
-    name = "NAME=VALUE"
-
-    def convert(self, value: Any, param, ctx) -> tuple[str, str]:
-        if isinstance(value, tuple):
-            return value
-        return _split(str(value), self.name, param, ctx, self)
 
 
 @dataclass(frozen=True)

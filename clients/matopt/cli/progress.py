@@ -6,6 +6,7 @@ failures the same way: a job that FAILED or was CANCELLED makes the command exit
 
 from __future__ import annotations
 
+import shutil
 import sys
 from typing import Callable
 
@@ -13,10 +14,12 @@ import click
 import grpc
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.cli.output import best, note, number, parameter_error
 from matopt_api.v1 import matopt_pb2 as pb
 
 BAR_WIDTH = 24
+MIN_BAR_WIDTH = 8  # narrower, a bar shows too little to be worth its columns
 
 
 class Interrupted(click.ClickException):
@@ -28,8 +31,11 @@ class Interrupted(click.ClickException):
 class JobProgress:
     """Shows a job's progress on stderr while it runs.
 
-    On a terminal one line rewrites itself (bar, iteration/total, loss); in a log, a line per
-    state change and per tenth of the iterations, so CI logs stay short but show movement.
+    On a terminal one line rewrites itself (bar, iteration/total, loss), fitted to the
+    terminal's width: a wrapped line could not be rewritten and would scroll a new line per
+    update. In a log (not a terminal), a line per state change and per tenth of the
+    iterations, each a complete line, so CI logs stay short but show movement. The best loss
+    is the daemon's (Job.best_loss), never recomputed here.
     """
 
     def __init__(self, interactive: bool | None = None) -> None:
@@ -53,8 +59,9 @@ class JobProgress:
             self.seconds = job.elapsed_seconds
             if job.iteration:
                 self.loss = job.loss
-            if job.iteration and job.best_iteration >= 0:
-                self.best = job.best_loss
+            best = workflow.best(job)
+            if best is not None:
+                self.best = best[1]
             if changed and not self.interactive:
                 self._last_tenth = self._tenth()
                 note(self.line())
@@ -63,32 +70,42 @@ class JobProgress:
             # Records are numbered from 0; after record i, i + 1 iterations are complete.
             self.iteration = record.iteration + 1
             self.loss, self.seconds = record.loss, record.seconds
-            if record.loss == record.loss:  # a NaN loss (a skipped step) is never the best
-                self.best = record.loss if self.best is None else min(self.best, record.loss)
             tenth = self._tenth()
             if not self.interactive and tenth != self._last_tenth:
                 self._last_tenth = tenth
                 note(self.line())
         if self.interactive:
-            text = self.line()
-            click.echo("\r" + text.ljust(self._width), nl=False, err=True)
+            # One column short of the width: a line filling the last column wraps on some
+            # terminals, and the next carriage return would then rewrite the wrong line.
+            width = shutil.get_terminal_size().columns - 1
+            text = self.line(width)
+            click.echo("\r" + text.ljust(min(self._width, width)), nl=False, err=True)
             self._width = len(text)
 
     def _tenth(self) -> int:
         return self.iteration * 10 // self.total if self.total else 0
 
-    def line(self) -> str:
-        parts = [self.name, self.state]
-        if self.total:
-            done = min(self.iteration, self.total) * BAR_WIDTH // self.total
-            parts.append("[" + "#" * done + "." * (BAR_WIDTH - done) + "]")
-        parts.append(f"{self.iteration}/{self.total}")
+    def line(self, width: int | None = None) -> str:
+        """The progress in at most ``width`` characters (None: as long as it takes).
+
+        The bar shrinks first, down to MIN_BAR_WIDTH, then goes; what still does not fit is
+        cut at the end, marked with '…'.
+        """
+        before, after = [self.name, self.state], [f"{self.iteration}/{self.total}"]
         if self.loss is not None:
-            parts.append(f"loss {number(self.loss)}")
+            after.append(f"loss {number(self.loss)}")
         if self.best is not None:
-            parts.append(f"best {number(self.best)}")
-        parts.append(f"{self.seconds:.1f} s")
-        return "  ".join(parts)
+            after.append(f"best {number(self.best)}")
+        after.append(f"{self.seconds:.1f} s")
+        text = "  ".join(before + after)
+        bar_width = BAR_WIDTH if width is None else min(BAR_WIDTH, width - len(text) - 4)
+        if self.total and bar_width >= MIN_BAR_WIDTH:
+            done = min(self.iteration, self.total) * bar_width // self.total
+            text = "  ".join(before + ["[" + "#" * done + "." * (bar_width - done) + "]"]
+                             + after)
+        if width is not None and len(text) > width:
+            text = text[:max(width - 1, 0)] + "…"
+        return text
 
     def close(self) -> None:
         if self.interactive and self._width:
@@ -117,8 +134,15 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
     for e in record.errors:  # with ground truth
         text += f"; {e.key}: {parameter_error(e)}"
     for g in record.gains:  # with --fit-exposure
-        text += f", gain {g.reference or g.sensor} " + "/".join(f"{v:.3g}" for v in g.rgb)
+        text += f", gain {g.reference or f'#{g.sensor}'} " + "/".join(f"{v:.3g}" for v in g.rgb)
     return text
+
+
+def describe_state(job: pb.Job) -> str:
+    """What of a job the reader of ``job watch`` follows besides iterations: its state, its
+    end phase and its error."""
+    phase = next((n for n in job.notes if n.startswith("end phase: ")), "")
+    return f"{mc.state_name(job.state)} {phase} {job.error}"
 
 
 def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:

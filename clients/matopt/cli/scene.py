@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-import uuid
 from pathlib import Path
 
 import click
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.cli.output import (emit_json, fields, json_option, message_dict, note, number, table,
                                 timestamp, uploading, values, warn)
-from matopt.cli.params import SCENE, Assignment, Values
+from matopt.cli.params import SCENE, Values
 from matopt.cli.session import Group, connected
 from matopt.export import download_images
 from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
-
 
 
 @click.group(cls=Group)
@@ -23,32 +22,17 @@ def scene() -> None:
     """Load, inspect and render scenes."""
 
 
-def create_scene(client: mc.Client, scene_xml: str | None, overrides: dict[str, str],
-                 display_name: str = "", root: str | None = None) -> pb.Scene:
-    """Uploads the bundle (none for the built-in Cornell box) and creates the scene.
-
-    A fresh request_id per call lets the daemon recognise a retried request as the same one.
-    """
-    request = pb.CreateSceneRequest(overrides=overrides, request_id=str(uuid.uuid4()),
-                                    display_name=display_name)
-    if scene_xml:
-        main_file, files = mc.upload_bundle(client, scene_xml, overrides, uploading, root)
-        request.main_file = main_file
-        request.files.extend(files)
-    return client.scenes.CreateScene(request)
-
-
 @scene.command()
 @click.argument("scene_xml", metavar="SCENE.xml", required=False)
 @click.option("--cornell-box", is_flag=True, help="the built-in Cornell box instead of a file")
-@click.option("--set", "overrides", multiple=True, type=Assignment(),
+@click.option("--set", "overrides", multiple=True, metavar="NAME=VALUE",
               help="an XML <default> value, e.g. --set resx=256 (repeatable)")
 @click.option("--name", "display_name", default="", help="display name (default: file name)")
 @click.option("--root", type=click.Path(exists=True, file_okay=False),
               help="the folder the scene's file names are relative to (the directory Mitsuba "
                    "was run from) [default: found]")
 @json_option
-def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, str], ...],
+def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[str, ...],
          display_name: str, root: str | None, as_json: bool) -> None:
     """Load a scene; prints its name.
 
@@ -61,7 +45,12 @@ def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[tuple[str, s
         raise click.UsageError("give either SCENE.xml or --cornell-box")
     if root and cornell_box:
         raise click.UsageError("--root goes with SCENE.xml")
-    created = create_scene(connected(), scene_xml, dict(overrides), display_name, root)
+    try:
+        defaults = workflow.parse_overrides(overrides)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--set") from None
+    created = workflow.create_scene(connected(), scene_xml, defaults, display_name, root,
+                                    uploading)
     for warning in created.warnings:
         warn(warning)
     if as_json:
@@ -101,7 +90,8 @@ def show(name: str, as_json: bool) -> None:
         "parameters": s.parameter_count,
         "media": "yes" if s.has_media else "no",
         "overrides": ", ".join(f"{k}={v}" for k, v in sorted(s.overrides.items())),
-        "sensors": ", ".join(f"{x.index}:{x.id or '-'} {x.width}x{x.height}" for x in s.sensors),
+        "sensors": ", ".join(f"#{x.index}{f' {x.id}' if x.id else ''} {x.width}x{x.height}"
+                             for x in s.sensors),
         "files": len(s.files),
     })
     for warning in s.warnings:

@@ -1,24 +1,22 @@
 """The job's settings besides parameters and references: loss, schedule, iterations, spp,
 min error, how sensors step, clamping. The fields start at the daemon's documented defaults
-(MSE, 100 iterations, 16 spp, min error 0.001, cosine decay) so that what the
-user sees is what runs. The losses offered are the API's Loss enum, so a loss the daemon
-gains shows up here without a change to this file (named after the enum, lowercase, as the
-CLI names them).
+(100 iterations, 16 spp, min error 0: off) so that what the user sees is what runs. The
+losses, schedules and sensor modes offered are the ones the daemon announces (ServerInfo),
+filled in on connecting: a loss the daemon gains shows up without a change here.
 """
 
 from __future__ import annotations
+
+from typing import Sequence
 
 from PySide6.QtCore import QLocale, Qt
 from PySide6.QtGui import QDoubleValidator
 from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QLineEdit, QSpinBox,
                                QWidget)
 
-from matopt_api import enums
+from matopt import workflow
 from matopt_api.v1 import matopt_pb2 as pb
 
-LOSSES = {name: enums.parse(pb.Loss, name) for name in enums.short_names(pb.Loss)}
-SCHEDULES = {"cosine": pb.SCHEDULE_COSINE, "constant": pb.SCHEDULE_CONSTANT}
-SENSOR_MODES = {"accumulate": pb.SENSOR_MODE_ACCUMULATE, "step per sensor": pb.SENSOR_MODE_STEP_PER_SENSOR}
 LOSS_TIPS = {
     "mse": "mean squared error",
     "dual_buffer": "two independent renders, mean((a - ref)(b - ref)): render noise does not "
@@ -30,24 +28,42 @@ LOSS_TIPS = {
 }
 
 
-class JobSettings(QWidget):
-    """A form whose values fill the scalar fields of a JobSpec."""
+def _fill(combo: QComboBox, names: Sequence[str], tips: dict[str, str] | None = None) -> None:
+    """The daemon's names as the items' data, shown with spaces for underscores (except
+    losses, which read as the CLI's --loss); the selection is kept when still offered."""
+    current = combo.currentData()
+    combo.clear()
+    for name in names:
+        combo.addItem(name if tips is not None else name.replace("_", " "), name)
+        if tips and name in tips:
+            combo.setItemData(combo.count() - 1, tips[name], Qt.ItemDataRole.ToolTipRole)
+    _select(combo, current)
+
+
+def _select(combo: QComboBox, name: str | None) -> None:
+    """Selects the item of ``name`` (the daemon's name, or as shown); one not offered
+    leaves the selection as it is."""
+    if name is None:
+        return
+    index = combo.findData(name)
+    index = index if index >= 0 else combo.findText(name)
+    if index >= 0:
+        combo.setCurrentIndex(index)
+
+
+class JobSettingsForm(QWidget):
+    """A form whose values are a ``workflow.JobSettings``."""
 
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         form = QFormLayout(self)
         form.setContentsMargins(0, 0, 0, 0)
         self.loss = QComboBox()
-        self.loss.addItems(list(LOSSES))
-        for i, name in enumerate(LOSSES):
-            if name in LOSS_TIPS:
-                self.loss.setItemData(i, LOSS_TIPS[name], Qt.ItemDataRole.ToolTipRole)
         # Sized for short names: the longest loss name would otherwise widen the whole form.
         self.loss.setSizeAdjustPolicy(
             QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
         self.loss.setMinimumContentsLength(12)
         self.schedule = QComboBox()
-        self.schedule.addItems(list(SCHEDULES))
         self.schedule.setToolTip("cosine: the learning rate decays to a tenth over the job, "
                                  "so the last iterate settles")
         self.iterations = QSpinBox()
@@ -65,7 +81,6 @@ class JobSettings(QWidget):
         self.min_error.setToolTip("stop once the loss (mean over sensors) is below this; "
                                   "0 (the default) runs all iterations")
         self.sensor_mode = QComboBox()
-        self.sensor_mode.addItems(list(SENSOR_MODES))
         self.sensor_mode.setToolTip("accumulate: one step per iteration from all sensors' "
                                     "gradients; step per sensor: one step per sensor per "
                                     "iteration, as the thesis tool did")
@@ -80,19 +95,22 @@ class JobSettings(QWidget):
         form.addRow("Sensors", self.sensor_mode)
         form.addRow("", self.clamp)
 
+    def set_choices(self, choices: workflow.Choices) -> None:
+        """The names this daemon accepts (from its ServerInfo, on connecting)."""
+        _fill(self.loss, choices.losses, LOSS_TIPS)
+        _fill(self.schedule, choices.schedules)
+        _fill(self.sensor_mode, choices.sensor_modes)
+
     def set_values(self, loss: str | None = None, iterations: int | None = None,
                    spp: int | None = None, min_error: float | None = None,
                    schedule: str | None = None, sensor_mode: str | None = None,
                    clamp: bool | None = None) -> None:
         """Sets the given fields (tests and scripts; the user types into the form)."""
-        if sensor_mode is not None:
-            self.sensor_mode.setCurrentText(sensor_mode)
+        _select(self.sensor_mode, sensor_mode)
         if clamp is not None:
             self.clamp.setChecked(clamp)
-        if loss is not None:
-            self.loss.setCurrentText(loss)
-        if schedule is not None:
-            self.schedule.setCurrentText(schedule)
+        _select(self.loss, loss)
+        _select(self.schedule, schedule)
         if iterations is not None:
             self.iterations.setValue(iterations)
         if spp is not None:
@@ -100,32 +118,21 @@ class JobSettings(QWidget):
         if min_error is not None:
             self.min_error.setText(f"{min_error:g}")
 
-    def fill(self, spec: pb.JobSpec) -> None:
-        """Writes the form into ``spec``. Raises ValueError for a min error that is no number."""
+    def values(self) -> workflow.JobSettings:
+        """The form's settings, every field given. ValueError for a min error that is no
+        number; a choice left empty (before connecting) is the daemon's default."""
         try:
             min_error = float(self.min_error.text())
         except ValueError:
             raise ValueError(f"min error '{self.min_error.text()}' is not a number") from None
-        spec.loss = LOSSES[self.loss.currentText()]
-        spec.schedule = SCHEDULES[self.schedule.currentText()]
-        spec.iterations = self.iterations.value()
-        spec.spp = self.spp.value()
-        spec.min_error = min_error
-        spec.sensor_mode = SENSOR_MODES[self.sensor_mode.currentText()]
-        spec.clamp = self.clamp.isChecked()
+        return workflow.JobSettings(
+            loss=self.loss.currentData(), schedule=self.schedule.currentData(),
+            sensor_mode=self.sensor_mode.currentData(), iterations=self.iterations.value(),
+            spp=self.spp.value(), min_error=min_error, clamp=self.clamp.isChecked())
 
     def apply(self, spec: pb.JobSpec) -> None:
         """Shows an earlier job's settings (the daemon returns them with defaults filled in)."""
-        names = {v: k for k, v in LOSSES.items()}
-        self.loss.setCurrentText(names.get(spec.loss, "mse"))
-        modes = {v: k for k, v in SENSOR_MODES.items()}
-        self.sensor_mode.setCurrentText(modes.get(spec.sensor_mode, "accumulate"))
-        self.clamp.setChecked(spec.clamp)
-        schedules = {v: k for k, v in SCHEDULES.items()}
-        self.schedule.setCurrentText(schedules.get(spec.schedule, "cosine"))
-        if spec.HasField("iterations"):
-            self.iterations.setValue(spec.iterations)
-        if spec.HasField("spp"):
-            self.spp.setValue(spec.spp)
-        if spec.HasField("min_error"):
-            self.min_error.setText(f"{spec.min_error:g}")
+        settings = workflow.settings_of(spec)
+        self.set_values(loss=settings.loss, iterations=settings.iterations, spp=settings.spp,
+                        min_error=settings.min_error, schedule=settings.schedule,
+                        sensor_mode=settings.sensor_mode, clamp=settings.clamp)

@@ -15,6 +15,7 @@ from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QGridLayout, 
 from PySide6.QtCore import Qt
 
 from matopt import client as mc
+from matopt import workflow
 from matopt.qt.images import ImagePane
 from matopt.qt.plot import LossPlot
 from matopt_api.v1 import matopt_pb2 as pb
@@ -171,9 +172,9 @@ class JobView(QWidget):
         self.pause_button.setEnabled(job.state in RUNNING_STATES)
         self.resume_button.setEnabled(job.state in (pb.JOB_STATE_PAUSED, pb.JOB_STATE_INTERRUPTED))
         self.cancel_button.setEnabled(job.state not in mc.TERMINAL_STATES)
+        best = workflow.best(job)
         self.set_numbers(job.iteration, job.loss if job.iteration else None,
-                         job.best_loss if job.iteration and job.best_iteration >= 0 else None,
-                         job.elapsed_seconds)
+                         best[1] if best else None, job.elapsed_seconds)
 
     def set_numbers(self, iteration: int, loss: float | None, best: float | None,
                     seconds: float) -> None:

@@ -16,6 +16,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLab
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from matopt import client as mc
+from matopt import workflow
 from matopt_api.v1 import matopt_pb2 as pb
 
 COLUMNS = ["Job", "State", "Iteration", "Best loss", "Created"]
@@ -73,7 +74,7 @@ class JobsList(QWidget):
         self.table.setRowCount(len(self.jobs))
         for i, job in enumerate(self.jobs):
             total = job.spec.iterations if job.spec.HasField("iterations") else 0
-            best = (f"{job.best_loss:.4g}" if job.iteration and job.best_iteration >= 0 else "")
+            best = f"{workflow.best(job)[1]:.4g}" if workflow.best(job) else ""
             cells = [short_id(job.name), mc.state_name(job.state),
                      f"{job.iteration}/{total}" if total else str(job.iteration), best,
                      created(job)]

@@ -6,38 +6,24 @@ from the scene's sensor count is refused at once, naming both numbers, rather th
 the daemon. A single sensor's image can also be set on its own (double-click its row); then
 only the sensors with an image are optimized against.
 
-A job opened from the server (to edit and restart it) keeps its references as blobs that are
-already there, so a restart uploads nothing.
+A job opened from the server (to edit and restart it) keeps its references, masks included,
+as blobs that are already there, so a restart uploads nothing.
 """
 
 from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass
 from typing import Sequence
 
 from PySide6.QtCore import Signal
 from PySide6.QtWidgets import (QFileDialog, QHBoxLayout, QListWidget, QListWidgetItem,
                                QPushButton, QVBoxLayout, QWidget)
 
+from matopt.workflow import ReferenceFile, reference_files
 from matopt_api.v1 import matopt_pb2 as pb
 
 IMAGE_FILTER = "Images (*.png *.jpg *.jpeg *.exr);;All files (*)"
-
-
-@dataclass
-class ReferenceImage:
-    """A sensor's reference: a local file to upload, or a blob the server already has."""
-
-    sensor: int
-    filename: str
-    path: str | None = None
-    blob: str | None = None
-
-    @property
-    def on_server(self) -> bool:
-        return self.path is None and bool(self.blob)
 
 
 def natural_key(path: str) -> list:
@@ -69,7 +55,7 @@ class ReferenceList(QWidget):
     def __init__(self, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.sensors: list[pb.Sensor] = []
-        self.images: dict[int, ReferenceImage] = {}
+        self.images: dict[int, ReferenceFile] = {}
         self.start_folder = ""
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
@@ -108,30 +94,29 @@ class ReferenceList(QWidget):
         if len(paths) != len(self.sensors):
             return self._refuse(count_mismatch(len(paths), len(self.sensors)))
         ordered = sorted(paths, key=natural_key)
-        self.images = {s.index: ReferenceImage(s.index, os.path.basename(p), path=str(p))
-                       for s, p in zip(self.sensors, ordered)}
+        self.images = {s.index: _local(s.index, p) for s, p in zip(self.sensors, ordered)}
         self._refresh()
         return None
 
     def set_file(self, sensor: int, path: str) -> None:
-        self.images[sensor] = ReferenceImage(sensor, os.path.basename(path), path=str(path))
+        self.images[sensor] = _local(sensor, path)
         self._refresh()
 
     def set_from_spec(self, references: Sequence[pb.Reference]) -> None:
         """An earlier job's references, kept as the blobs they already are on the server."""
         self.images = {}
         indices = [s.index for s in self.sensors]
-        for n, ref in enumerate(references):
-            sensor = ref.sensor if ref.HasField("sensor") else (
-                indices[n] if n < len(indices) else n)
-            name = ref.filename or ref.blob.rsplit("/", 1)[-1][:12]
-            self.images[sensor] = ReferenceImage(sensor, name, blob=ref.blob)
+        for n, ref in enumerate(reference_files(references)):
+            if ref.sensor is None:  # in order, as the daemon maps them
+                ref.sensor = indices[n] if n < len(indices) else n
+            ref.filename = ref.filename or ref.image.rsplit("/", 1)[-1][:12]
+            self.images[ref.sensor] = ref
         self._refresh()
 
-    def reference(self, sensor: int) -> ReferenceImage | None:
+    def reference(self, sensor: int) -> ReferenceFile | None:
         return self.images.get(sensor)
 
-    def references(self) -> list[ReferenceImage]:
+    def references(self) -> list[ReferenceFile]:
         return [self.images[i] for i in sorted(self.images)]
 
     # -- dialogs -------------------------------------------------------------------------------
@@ -170,10 +155,14 @@ class ReferenceList(QWidget):
                 label += "— no image —"
             else:
                 label += image.filename + (" (on server)" if image.on_server else "")
+                label += " + mask" if image.mask or image.alpha_mask else ""
             item = QListWidgetItem(label)
-            item.setToolTip(image.path or image.blob if image else
-                            "double-click to choose this sensor's image")
+            item.setToolTip(image.image if image else "double-click to choose this sensor's image")
             self.list.addItem(item)
         self.clear_button.setEnabled(bool(self.images))
         self.load_button.setEnabled(bool(self.sensors))
         self.changed.emit()
+
+
+def _local(sensor: int, path: str) -> ReferenceFile:
+    return ReferenceFile(image=str(path), sensor=sensor, filename=os.path.basename(path))
