@@ -172,17 +172,15 @@ class JobControl:
                    done)
 
     def _load_history(self, name: str) -> None:
-        def done(response: pb.GetJobHistoryResponse) -> None:
+        def done(records: list[pb.IterationRecord]) -> None:
             if self.job is None or self.job.name != name:
                 return
-            records = list(response.iterations)
             self.view.plot.extend((r.iteration, r.seconds, r.loss, _errors(r)) for r in records)
             if records and (self.latest is None
                             or records[-1].iteration > self.latest.iteration):
                 self._iteration(records[-1], plot=False)
         self._call(f"fetching the history of {name}",
-                   lambda c: c.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name),
-                                                  timeout=CALL_TIMEOUT_S), done)
+                   lambda c: mc.job_history(c, name), done)  # every page
 
     def _watch(self, name: str) -> None:
         client = self.connection.client
