@@ -197,7 +197,7 @@ def measure(case: Case, settings: Settings, server: common.Daemon, scene: pb.Sce
     series = [series_plain]
     if job.history:
         spec = job.job.spec
-        schedule = mc.enum_name(pb.Schedule, spec.schedule).lower()
+        schedule = enums.short_name(pb.Schedule, spec.schedule).lower()
         label = f"daemon defaults ({spec.spp} spp, {schedule} lr, {len(job.history)} it.)"
         series.append(common.job_series(job, label))
     files = report.write_report(series, settings.out / "quality" / case.name,

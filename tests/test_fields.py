@@ -27,12 +27,13 @@ def test_sane_requests_pass():
 
 @pytest.mark.parametrize("request_,message", [
     (pb.CreateJobRequest(spec=pb.JobSpec(schedule=99)),
-     "spec.schedule 99 is not a Schedule: expected one of COSINE (1), CONSTANT (2)"),
+     "spec.schedule 99 is not a Schedule: expected one of SCHEDULE_COSINE (1), "
+     "SCHEDULE_CONSTANT (2)"),
     (pb.CreateJobRequest(spec=pb.JobSpec(sensor_mode=99)), "spec.sensor_mode 99 is not a "
-     "SensorMode: expected one of ACCUMULATE (1), STEP_PER_SENSOR (2)"),
+     "SensorMode: expected one of SENSOR_MODE_ACCUMULATE (1), SENSOR_MODE_STEP_PER_SENSOR (2)"),
     (pb.CreateJobRequest(spec=pb.JobSpec(loss=-1)), "spec.loss -1 is not a Loss"),
     (pb.GetJobResultRequest(name="jobs/a", which=99), "which 99 is not a Which"),
-    (pb.ListJobsRequest(state=99), "state 99 is not a State"),
+    (pb.ListJobsRequest(state=99), "state 99 is not a JobState"),
 ])
 def test_unknown_enum_values_name_field_and_value(request_, message):
     assert refused(request_).startswith(message)
