@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 from matopt_api import costs
-from matopt_api.v1 import matopt_pb2 as pb
 
 from scenes import camera, create_scene, exr, png
 
