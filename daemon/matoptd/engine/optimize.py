@@ -21,7 +21,9 @@ the loss); so does this one, and Python traces the next render while the backwar
 Parameters that are positive and unbounded above (radiance, extinction, scales) are optimized
 as u = log(v): a step of size lr changes v by a factor of about e^lr, the same relative change
 at 1e-3 as at 1e3, so a radiance near 1000 and a reflectance near 0.5 can share one learning
-rate, and v can never step below 0. The others are optimized as they are and clipped.
+rate, and v can never step below 0. Microfacet widths (roughness, alpha) are too, clipped in
+log space to their range: a near-specular truth lies decades below the start. The others are
+optimized as they are and clipped.
 """
 
 from __future__ import annotations
@@ -53,7 +55,13 @@ class Setting:
 
     @property
     def log(self) -> bool:
-        return self.lo == 0.0 and math.isinf(self.hi)
+        return parameters.log_space(self.key, self.lo, self.hi)
+
+    def latent_bounds(self) -> tuple[float, float]:
+        """[min, max] of u = log(v) for a log parameter."""
+        lo, hi = parameters.log_bounds(self.key, self.lo, self.hi)
+        return (math.log(lo) if lo > 0 else -LATENT_LIMIT,
+                math.log(hi) if math.isfinite(hi) else LATENT_LIMIT)
 
 
 @dataclass
@@ -141,7 +149,7 @@ class Optimization:
             start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
                             s.lo, s.hi)
             if s.log:
-                start = np.log(np.maximum(start, LOG_FLOOR))
+                start = np.clip(np.log(np.maximum(start, LOG_FLOOR)), *s.latent_bounds())
             self.opt[key] = parameters.assign(self.params[key], start)
             self.opt.set_learning_rate({key: s.learning_rate})
         self._apply()
@@ -275,7 +283,10 @@ class Optimization:
         for key, s in self.settings.items():
             value = self.opt[key]
             if s.log:
-                self.opt[key] = dr.clip(value, -LATENT_LIMIT, LATENT_LIMIT)
+                lo, hi = s.latent_bounds()
+                if lo > -LATENT_LIMIT or hi < LATENT_LIMIT:
+                    self._pending.append(("clamped", self._true((value < lo) | (value > hi))))
+                self.opt[key] = dr.clip(value, lo, hi)
                 continue
             self._pending.append(("clamped", self._true((value < s.lo) | (value > s.hi))))
             self.opt[key] = dr.clip(value, s.lo, s.hi)
