@@ -40,6 +40,7 @@ import numpy as np
 
 from . import parameters
 from .integrator import choose
+from ..engine_api import SMALL
 from .losses import LOSSES
 
 
@@ -163,6 +164,8 @@ class Optimization:
         self.skipped_steps = 0
         self.clamped = 0
         self.recent: list[float] = []  # the last `loss.window` finite losses
+        # per iteration, the mean of each parameter too large for the records (diagnosis)
+        self.means: dict[str, list[float]] = {}
         self._judged: float | None = None
 
     # -- the loop ---------------------------------------------------------------------------
@@ -225,6 +228,9 @@ class Optimization:
             if not (last or self._reached(loss)):
                 self._descend(total, loss, i)
         theta = self._read_theta()
+        for key, v in theta.items():
+            if v.size > SMALL:
+                self.means.setdefault(key, []).append(float(np.mean(v)))
         judged = self._judge(loss)
         if judged is not None and judged < self.best.loss:
             self.best = Best(i, judged, theta)
