@@ -61,7 +61,7 @@ def test_error_growing_while_the_loss_falls_further_is_reported_but_not_while_it
 def test_two_parameters_drifting_against_each_other_on_a_level_loss_trade_off():
     # eta against base_color where transmission never shows: both wander along a valley.
     losses = list(0.002 + _noise(4, 5e-5))
-    walk = np.cumsum(np.r_[np.zeros(50), np.full(50, 0.002)])
+    walk = np.r_[np.zeros(50), 0.05 * np.sin(np.linspace(0, 3 * np.pi, 50))]
     paths = {"obj.eta": (1.5 + walk + _noise(5, 0.0005))[:, None],
              "obj.base_color": np.stack([0.4 - 0.5 * walk + _noise(6 + c, 0.0005)
                                          for c in range(3)], axis=1),
@@ -72,6 +72,14 @@ def test_two_parameters_drifting_against_each_other_on_a_level_loss_trade_off():
     assert {a, b} == {"obj.eta", "obj.base_color"} and r < -0.8
     note = undecided(losses, paths, {})[0]
     assert "trade off" in note and "obj.eta" in note and "another sensor" in note
+
+
+def test_no_trade_off_while_two_parameters_still_head_one_way_on_a_noisy_loss():
+    # Converging in step, slower than the noise lets the loss show: not a valley.
+    i = np.arange(N)
+    losses = list(0.002 + _noise(10, 5e-5))
+    paths = {"albedo": (0.3 + 0.001 * i)[:, None], "sigma_t": (0.6 - 0.002 * i)[:, None]}
+    assert trade_offs(losses, paths) == []
 
 
 def test_no_trade_off_while_the_loss_is_still_falling():

@@ -22,7 +22,7 @@ BOUND = 1.05  # the blob lies inside [-BOUND, BOUND]^3 (the grid of the Table 5 
 
 
 def blob_mesh(rings: int = 24, segments: int = 48) -> bytes:
-    """A displaced UV sphere as ASCII PLY with vertex normals and UVs (a seam column of
+    """A displaced UV sphere as binary PLY with vertex normals and UVs (a seam column of
     duplicated vertices keeps the UVs continuous). Radius 1 +- 0.12: lobes at several
     frequencies, so silhouettes and highlights vary over the surface as on a bunny."""
     theta = np.linspace(0, math.pi, rings + 1)[:, None]
@@ -57,13 +57,13 @@ def blob_mesh(rings: int = 24, segments: int = 48) -> bytes:
                 faces.append((a, b, c))
             if i < rings - 1:
                 faces.append((a, c, d))
-    header = ["ply", "format ascii 1.0", f"element vertex {len(verts)}",
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(verts)}",
               *(f"property float {p}" for p in ("x", "y", "z", "nx", "ny", "nz", "u", "v")),
               f"element face {len(faces)}", "property list uchar int vertex_indices",
               "end_header"]
-    lines = header + [" ".join(f"{x:.6f}" for x in v) for v in verts]
-    lines += [f"3 {a} {b} {c}" for a, b, c in faces]
-    return ("\n".join(lines) + "\n").encode()
+    face_rows = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", 3)])
+    face_rows["n"], face_rows["i"] = 3, faces
+    return ("\n".join(header) + "\n").encode() + verts.astype("<f4").tobytes() + face_rows.tobytes()
 
 
 def environment(width: int = 128, height: int = 64) -> np.ndarray:
@@ -189,8 +189,8 @@ def table3(res: int = 48, views: int = 1) -> Case:
     xml = _scene(res, views, "path", 6, """<bsdf type="bumpmap">
             <texture type="bitmap" name="bump">
                 <string name="filename" value="bump.exr"/>
-                <float name="scale" value="0.3"/>
             </texture>
+            <float name="scale" value="0.3"/>
             <bsdf type="principled">
                 <texture type="bitmap" name="base_color">
                     <string name="filename" value="color.exr"/>

@@ -133,19 +133,23 @@ def _series(path: np.ndarray) -> np.ndarray:
 
 def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
                min_correlation: float = 0.8) -> list[tuple[str, str, float]]:
-    """(a, b, correlation) for pairs of parameters that both drifted over the second half of
-    the history (by more than 2% of their value, beyond their jitter) in step with each other
-    while the loss stayed level: a valley the images cannot resolve."""
+    """(a, b, correlation) for pairs of parameters that both wandered over the second half of
+    the history (by more than 2% of their value, turning back at least once) in step with
+    each other while the loss stayed level: a valley the images cannot resolve. A parameter
+    still heading one way is converging (or not yet done), not wandering: two of those move
+    in step too, but that says nothing about the images."""
     if not _level(losses):
         return []
     moving = {}
     for key, path in trajectories.items():
         x = _series(path)
-        if len(x) < 20 or not np.all(np.isfinite(x)):
+        if len(x) < 40 or not np.all(np.isfinite(x)):
             continue
         window = _smooth(x[-len(x) // 2:])
         span = window.max() - window.min()
-        if span > 0.02 * max(abs(window.mean()), 1e-3):
+        travelled = np.sum(np.abs(np.diff(window)))
+        net = abs(window[-1] - window[0])
+        if span > 0.02 * max(abs(window.mean()), 1e-3) and travelled > 1.5 * net + 0.5 * span:
             moving[key] = window
     out = []
     keys = list(moving)
