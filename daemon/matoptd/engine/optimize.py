@@ -38,7 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import parameters
+from . import multires, parameters
 from .integrator import choose
 from ..engine_api import SMALL
 from .losses import LOSSES
@@ -146,12 +146,30 @@ class Optimization:
         self.params.keep(list(self.settings))
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
+        # Textures and grids large enough go coarse to fine (multires.py): their shapes per
+        # level, the level in use, and the gather map from the full shape to it.
+        self.levels: dict[str, list[tuple[int, ...]]] = {}
+        self.level: dict[str, int] = {}
+        self._maps: dict[str, mi.UInt32 | None] = {}
+        self.choices: list[str] = []  # what the optimization chose by itself, in words
         for key, s in self.settings.items():
             start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
                             s.lo, s.hi)
             if s.log:
                 start = np.clip(np.log(np.maximum(start, LOG_FLOOR)), *s.latent_bounds())
-            self.opt[key] = parameters.assign(self.params[key], start)
+            value = self.params[key]
+            shapes = multires.levels(tuple(int(n) for n in value.shape)
+                                     if dr.is_tensor_v(value) else ())
+            if len(shapes) > 1:
+                self.levels[key] = shapes
+                self._set_level(key, 0, multires.downsample(start, shapes[-1], shapes[0]))
+                steps = " -> ".join("x".join(map(str, sh[:-1])) for sh in shapes)
+                self.choices.append(
+                    f"{key}: optimized coarse to fine ({steps}; the full resolution from "
+                    f"iteration {config.iterations // 2}): the pattern's low frequencies "
+                    "settle before its detail")
+            else:
+                self.opt[key] = parameters.assign(value, start)
             self.opt.set_learning_rate({key: s.learning_rate})
         self._apply()
         self.initial = self.values()
@@ -171,9 +189,37 @@ class Optimization:
     # -- the loop ---------------------------------------------------------------------------
 
     def _value(self, key: str):
-        """The scene value of a parameter, v = e^u for log parameters (differentiable in u)."""
+        """The scene value of a parameter, v = e^u for log parameters, blown up to the full
+        shape for a texture at a coarse level (differentiable in u)."""
         u = self.opt[key]
+        index = self._maps.get(key)
+        if index is not None:
+            u = multires.upsample(u, self.levels[key][-1], index)
         return dr.exp(u) if self.settings[key].log else u
+
+    def _set_level(self, key: str, level: int, latent: np.ndarray) -> None:
+        """Optimizes ``key`` at ``level`` from ``latent`` (flat, that level's shape); Adam's
+        state starts afresh (the shape changes)."""
+        shapes = self.levels[key]
+        self.level[key] = level
+        self.opt[key] = mi.TensorXf(np.asarray(latent, np.float32).reshape(shapes[level]))
+        full = level == len(shapes) - 1
+        self._maps[key] = None if full else mi.UInt32(multires.index_map(shapes[-1],
+                                                                         shapes[level]))
+
+    def _refine(self, i: int) -> None:
+        """Moves textures and grids to the next level when iteration i reaches it."""
+        changed = False
+        for key, shapes in self.levels.items():
+            level = multires.level_at(i, self.config.iterations, len(shapes))
+            if level > self.level[key]:
+                current = parameters.flat(self.opt[key])
+                self._set_level(key, level, current[multires.index_map(
+                    shapes[level], shapes[self.level[key]])])
+                self.opt.set_learning_rate({key: self.settings[key].learning_rate})
+                changed = True
+        if changed:
+            self._apply()
 
     def _apply(self) -> None:
         for key in self.settings:
@@ -214,6 +260,7 @@ class Optimization:
     def step(self) -> Step:
         start = time.perf_counter()
         i, c = self.iteration, self.config
+        self._refine(i)
         last = i + 1 >= c.iterations
         self._theta = None  # theta_i, read once the first render has evaluated it
         self._judged = None  # the windowed loss of this iteration, once known
@@ -368,6 +415,7 @@ class Optimization:
         for n, key in enumerate(self.settings):
             value, _, _, (t, m, v, _) = self.opt.state[key]
             arrays[f"value{n}"] = parameters.flat(value)
+            arrays[f"level{n}"] = np.array([self.level.get(key, -1)], dtype=np.int32)
             arrays[f"t{n}"] = np.asarray(t, dtype=np.uint32)
             arrays[f"m{n}"] = np.asarray(m, dtype=np.float32)
             arrays[f"v{n}"] = np.asarray(v, dtype=np.float32)
@@ -390,7 +438,10 @@ class Optimization:
         self.recent = z["recent"].tolist()
         kept: dict[str, dict[str, np.ndarray]] = {"best": {}, "last": {}}
         for n, key in enumerate(self.settings):
-            self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])
+            if key in self.levels:
+                self._set_level(key, int(z[f"level{n}"][0]), z[f"value{n}"])
+            else:
+                self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])
             value, promoted, lr, (t, m, v, vmax) = self.opt.state[key]
             self.opt.state[key] = (value, promoted, lr,
                                    (type(t)(z[f"t{n}"]), type(m)(z[f"m{n}"]),

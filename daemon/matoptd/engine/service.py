@@ -171,7 +171,7 @@ class MitsubaEngine:
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
-        opt.notes = notes + [f"gradients for: {', '.join(opt.settings)}",
+        opt.notes = notes + opt.choices + [f"gradients for: {', '.join(opt.settings)}",
                              f"sensors rendered: {', '.join(map(str, opt.references))}"
                              + (f" (not rendered: {', '.join(map(str, skipped))})"
                                 if skipped else "")]
