@@ -135,8 +135,11 @@ CASES = [
              "roughness anywhere in 0.032-0.1: the job says it has not converged"),
     Case("near-specular rough dielectric", glass(1.5, alpha=0.001),
          {"ball.bsdf.alpha.value": [0.5]}, {"ball.bsdf.alpha.value": [0.001]}, 60,
-         tolerance={"ball.bsdf.alpha.value": 10.0},
-         why="alpha 0.001: the lobe is a spike, and prb samples it with detached directions"),
+         within={"ball.bsdf.alpha.value": (1e-4, 0.1)},
+         why="alpha 0.001: the lobe is a spike, and prb samples it with detached directions; "
+             "alpha steps in log space (20% at full rate) and at 16 px a lobe under ~0.03 is "
+             "narrower than a pixel, so noise decides where below that it ends (0.01-0.05 in "
+             "trials): the case asks that it came down from 0.5, past 0.1"),
     Case("eta near 1", glass(1.01), {"ball.bsdf.eta": [1.3]}, {"ball.bsdf.eta": [1.01]}, 60,
          expect_note=LOSS_DID_NOT_FALL,
          why="eta 1.01: the ball nearly vanishes; a step to eta <= 1 would turn it inside out. "

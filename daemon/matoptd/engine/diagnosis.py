@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .parameters import ROUGHNESS_MIN
+from .parameters import ROUGHNESS_MIN, log_bounds
 
 
 DECIDERS = ("more views (another sensor that sees it), a reference that shows what "
@@ -30,8 +30,10 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
                          "(0.001): a smoother surface would look the same, so the truth may "
                          "be anywhere below; compare alpha, not roughness")
             continue
-        for bound, name in ((s.lo, "min"), (s.hi, "max")):
-            at = int(np.sum(np.isclose(v, bound, rtol=0, atol=1e-6))) if np.isfinite(bound) else 0
+        # A width optimized in log space stops at its floor, not at 0.
+        lo, hi = log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
+        for bound, name in ((lo, "min"), (hi, "max")):
+            at = int(np.sum(np.isclose(v, bound, rtol=1e-5, atol=1e-6))) if np.isfinite(bound) else 0
             if at:
                 notes.append(f"{key}: {at} component(s) ended at the {name} {bound:g}; the "
                              "truth may lie outside the range, or these images do not "

@@ -57,6 +57,10 @@ ROUGHNESS_MIN = 0.0318
 # (a microfacet alpha) is floored at Mitsuba's own clamp, 1e-4.
 _WIDTHS = {"roughness", "alpha", "alpha_u", "alpha_v"}
 WIDTH_FLOOR = 1e-4
+# Their default rate: a 20% change per step at full rate, so that a width can cross the
+# decades from a rough start (0.5) to a near-specular truth (0.001) in the first half of a
+# 60-iteration job under the cosine decay (at 0.1, alpha 0.5 -> 0.001 stopped at 0.1).
+WIDTH_LEARNING_RATE = 0.2
 
 _UNIT = {"reflectance", "base_color", "albedo", "diffuse_reflectance", "specular_reflectance",
          "specular_transmittance", "transmittance", "roughness", "alpha", "alpha_u", "alpha_v",
@@ -174,6 +178,8 @@ def assign(template, values: np.ndarray):
 def default_learning_rate(info: Info) -> float:
     if dielectric_eta(info.key):
         return ETA_LEARNING_RATE
+    if property_name(info.key) in _WIDTHS:
+        return WIDTH_LEARNING_RATE
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
     small = info.kind in ("scalar", "rgb")
     medium = property_name(info.key) in _MEDIUM
