@@ -24,7 +24,7 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         v = values.get(key)
         if v is None:
             continue
-        # v is float32: 0.032 reads back as 0.0320000015, hence the tolerance of the bounds.
+        # v is float32: 0.0318 reads back a little off, hence the tolerance of the bounds.
         if key.endswith("roughness.value") and np.all(v <= ROUGHNESS_MIN + 1e-6):
             notes.append(f"{key}: ended at {ROUGHNESS_MIN:g}, the principled BSDF's alpha floor "
                          "(0.001): a smoother surface would look the same, so the truth may "
@@ -105,9 +105,9 @@ def _level(losses: list[float]) -> bool:
 def drifts_from_truth(losses: list[float], truth_errors: dict[str, list[float]],
                       ) -> list[tuple[str, float, float, float]]:
     """(key, first, lowest, last error) for each parameter whose error against the truth
-    ended well above its lowest (by at least 2% of the truth, and by half again or by 5%)
-    while the loss ended no higher than where it was at that lowest: the images stopped
-    steering it, or steered it away."""
+    ended well above its lowest (by at least 2% of the truth and three times the jitter of
+    its last tenth, and by half again or by 5%) while the loss ended no higher than where it
+    was at that lowest: the images stopped steering it, or steered it away."""
     out = []
     finite = [x for x in losses if np.isfinite(x)]
     if len(finite) < 10:
@@ -117,13 +117,14 @@ def drifts_from_truth(losses: list[float], truth_errors: dict[str, list[float]],
         e = np.asarray(errors, dtype=np.float64)
         if len(e) < 10 or not np.all(np.isfinite(e)):
             continue
-        es = _smooth(e)
-        at = int(np.argmin(es))
-        last = float(np.mean(e[-max(3, len(e) // 10):]))
+        at = int(np.argmin(e))
+        tail = e[-max(3, len(e) // 10):]
+        last, jitter = float(tail.mean()), float(tail.std())
+        grew = last - e[at]
         loss_then = smooth[min(at, len(smooth) - 1)]
-        grew = last - es[at]
-        if grew > 0.02 and (last > 1.5 * es[at] or grew > 0.05) and smooth[-1] <= 1.1 * loss_then:
-            out.append((key, float(e[0]), float(es[at]), last))
+        if (grew > max(0.02, 3 * jitter) and (last > 1.5 * e[at] or grew > 0.05)
+                and smooth[-1] <= 1.1 * loss_then):
+            out.append((key, float(e[0]), float(e[at]), last))
     return out
 
 
