@@ -153,7 +153,8 @@ def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]]) -> pb.Ite
 def record_from_pb(r: pb.IterationRecord) -> api.IterationRecord:
     return api.IterationRecord(r.iteration, r.seconds, r.loss,
                                {v.key: np.asarray(v.value, dtype=np.float32)
-                                for v in r.parameters if v.value})
+                                for v in r.parameters if v.value},
+                               {e.key: (e.max_abs, e.rmse, e.relative) for e in r.errors})
 
 
 def progress_to_job(job: pb.Job, p: api.Progress) -> None:
