@@ -7,8 +7,10 @@ import numpy as np
 from .parameters import ROUGHNESS_MIN, log_bounds
 
 
-DECIDERS = ("more views (another sensor that sees it), a reference that shows what "
+DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
             "separates them, or a fixed value for one of them (leave it out of the selection)")
+DECIDER = ("more views (another sensor that sees it), larger images or more samples, or a "
+           "fixed value (leave it out of the selection)")
 
 
 def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
@@ -72,7 +74,7 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
         notes.append(f"{key}: the render matches the references as well as it did, but the "
                      f"error against the given truth grew from {best:.3g} (its lowest) to "
                      f"{last:.3g} (started at {first:.3g}): these images do not decide it; what "
-                     f"would: {DECIDERS}")
+                     f"would: {DECIDER}")
     for a, b, r in trade_offs(losses, trajectories):
         how = "rises as the other falls" if r < 0 else "moves with the other"
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
@@ -82,7 +84,7 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
         notes.append(f"{key} hardly moved while the loss fell: the images carry no gradient "
                      "for it (light that would show it may never reach the camera, e.g. "
                      "transmission at a small max_depth); what would decide it: a deeper "
-                     f"max_depth, {DECIDERS}")
+                     f"max_depth, {DECIDER}")
     return notes
 
 
@@ -105,7 +107,7 @@ def _level(losses: list[float]) -> bool:
 def drifts_from_truth(losses: list[float], truth_errors: dict[str, list[float]],
                       ) -> list[tuple[str, float, float, float]]:
     """(key, first, lowest, last error) for each parameter whose error against the truth
-    ended well above its lowest (by at least 2% of the truth and three times the jitter of
+    ended well above its lowest (by at least 3% of the truth and three times the jitter of
     its last tenth, and by half again or by 5%) while the loss ended no higher than where it
     was at that lowest: the images stopped steering it, or steered it away."""
     out = []
@@ -122,7 +124,7 @@ def drifts_from_truth(losses: list[float], truth_errors: dict[str, list[float]],
         last, jitter = float(tail.mean()), float(tail.std())
         grew = last - e[at]
         loss_then = smooth[min(at, len(smooth) - 1)]
-        if (grew > max(0.02, 3 * jitter) and (last > 1.5 * e[at] or grew > 0.05)
+        if (grew > max(0.03, 3 * jitter) and (last > 1.5 * e[at] or grew > 0.05)
                 and smooth[-1] <= 1.1 * loss_then):
             out.append((key, float(e[0]), float(e[at]), last))
     return out
