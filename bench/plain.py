@@ -39,6 +39,9 @@ class PlainSpec:
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)  # default [0, 1]
     rates: dict[str, float] = field(default_factory=dict)                 # default 0.03
     seed: int = 0
+    # further sensors' references (sensor index -> linear EXR): the loss is the mean over all
+    more_references: dict[int, Path] = field(default_factory=dict)
+    seconds: float = 0.0  # > 0: stop after the iteration that reaches this time
 
 
 @dataclass
@@ -76,24 +79,34 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
     began, cpu = time.perf_counter(), time.process_time()
     scene = mi.load_file(str(spec.xml), **spec.overrides)
     integrator = mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
-    reference = mi.TensorXf(np.array(mi.Bitmap(str(spec.reference)), dtype=np.float32)[..., :3])
+    references = {s: mi.TensorXf(np.array(mi.Bitmap(str(path)), dtype=np.float32)[..., :3])
+                  for s, path in {0: spec.reference, **spec.more_references}.items()}
     params = mi.traverse(scene)
     params.keep(list(spec.start))
     opt = mi.ad.Adam(lr=0.03)
     for key, start in spec.start.items():
-        opt[key] = dr.unravel(type(params[key]), mi.Float(start))
+        if dr.is_tensor_v(params[key]):  # a texture or grid: its shape, from a flat start
+            opt[key] = type(params[key])(np.asarray(start, np.float32).reshape(params[key].shape))
+        else:
+            opt[key] = dr.unravel(type(params[key]), mi.Float(start))
         if key in spec.rates:
             opt.set_learning_rate({key: spec.rates[key]})
     params.update(opt)
 
     out = []
     for i in range(spec.iterations):
-        image = mi.render(scene, params, spp=spec.spp, seed=spec.seed + i, integrator=integrator)
-        loss = dr.mean(dr.square(image[..., :3] - reference), axis=None)
+        loss = 0
+        for sensor, reference in references.items():
+            image = mi.render(scene, params, sensor=sensor, spp=spec.spp,
+                              seed=spec.seed + i * len(references) + sensor,
+                              integrator=integrator)
+            loss += dr.mean(dr.square(image[..., :3] - reference), axis=None)
+        loss /= len(references)
         values = {k: np.asarray(dr.ravel(dr.detach(opt[k])), dtype=np.float32).tolist()
                   for k in spec.start}
         loss_value = float(loss.array[0])
-        if i + 1 < spec.iterations:  # the daemon, too, takes no step after the last render
+        over = spec.seconds > 0 and time.perf_counter() - began >= spec.seconds
+        if i + 1 < spec.iterations and not over:  # the daemon, too, takes no step after the last render
             dr.backward(loss)
             opt.step()
             for key in spec.start:
@@ -102,6 +115,8 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
             params.update(opt)
         out.append(PlainIteration(i, time.perf_counter() - began, time.process_time() - cpu,
                                   loss_value, values))
+        if over:
+            break
     return out
 
 

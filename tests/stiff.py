@@ -131,13 +131,16 @@ CASES = [
          {f"{BALL}.roughness.value": [0.5]}, {f"{BALL}.roughness.value": [0.01]}, 60,
          expect_note=("alpha floor", "still moving", *LOSS_DID_NOT_FALL),
          why="roughness 0.01: alpha = max(0.001, r^2) is floored, so roughness below ~0.03 is "
-             "invisible (its range starts at 0.032) and the error that means something is "
+             "invisible (its range starts at 0.0318) and the error that means something is "
              "alpha's; prb's gradient of so narrow a lobe is mostly noise, which leaves "
-             "roughness anywhere in 0.032-0.1: the job says it has not converged"),
+             "roughness anywhere in 0.0318-0.1: the job says it has not converged"),
     Case("near-specular rough dielectric", glass(1.5, alpha=0.001),
          {"ball.bsdf.alpha.value": [0.5]}, {"ball.bsdf.alpha.value": [0.001]}, 60,
-         tolerance={"ball.bsdf.alpha.value": 10.0},
-         why="alpha 0.001: the lobe is a spike, and prb samples it with detached directions"),
+         within={"ball.bsdf.alpha.value": (1e-4, 0.1)},
+         why="alpha 0.001: the lobe is a spike, and prb samples it with detached directions; "
+             "alpha steps in log space (20% at full rate) and at 16 px a lobe under ~0.03 is "
+             "narrower than a pixel, so noise decides where below that it ends (0.01-0.05 in "
+             "trials): the case asks that it came down from 0.5, past 0.1"),
     Case("eta near 1", glass(1.01), {"ball.bsdf.eta": [1.3]}, {"ball.bsdf.eta": [1.01]}, 60,
          expect_note=LOSS_DID_NOT_FALL,
          why="eta 1.01: the ball nearly vanishes; a step to eta <= 1 would turn it inside out. "

@@ -173,7 +173,10 @@ def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]],
 def record_from_pb(r: pb.IterationRecord) -> api.IterationRecord:
     return api.IterationRecord(r.iteration, r.seconds, r.loss,
                                {v.key: np.asarray(v.value, dtype=np.float32)
-                                for v in r.parameters if v.value})
+                                for v in r.parameters if v.value},
+                               {e.key: api.ParameterError(e.max_abs, e.rmse, e.relative, e.psnr,
+                                                          list(e.correlation))
+                                for e in r.errors})
 
 
 def progress_to_job(job: pb.Job, p: api.Progress) -> None:

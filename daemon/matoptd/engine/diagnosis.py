@@ -5,26 +5,37 @@ from __future__ import annotations
 import numpy as np
 
 from ..range_notes import bound_notes
-from .parameters import ROUGHNESS_MIN
+from .parameters import ROUGHNESS_MIN, log_bounds
+
+
+DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
+            "separates them, or a fixed value for one of them (leave it out of the selection)")
+DECIDER = ("more views (another sensor that sees it), larger images or more samples, or a "
+           "fixed value (leave it out of the selection)")
 
 
 def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
              nonfinite_steps: int, skipped_steps: int,
-             trajectories: dict[str, np.ndarray] | None = None) -> list[str]:
+             trajectories: dict[str, np.ndarray] | None = None,
+             truth_errors: dict[str, list[float]] | None = None) -> list[str]:
     """``trajectories``: per parameter, its value at each iteration (iterations x components),
-    for the parameters small enough to be recorded inline."""
-    notes = []
+    for the parameters small enough to be recorded inline, and the mean over components for
+    the others (textures, grids). ``truth_errors``: per parameter with a ground truth, its
+    relative error at each iteration."""
+    notes = undecided(losses, trajectories or {}, truth_errors or {})
     for key, s in settings.items():
         v = values.get(key)
         if v is None:
             continue
-        # v is float32: 0.032 reads back as 0.0320000015, hence the tolerance of the bounds.
+        # v is float32: 0.0318 reads back a little off, hence the tolerance of the bounds.
         if key.endswith("roughness.value") and np.all(v <= ROUGHNESS_MIN + 1e-6):
             notes.append(f"{key}: ended at {ROUGHNESS_MIN:g}, the principled BSDF's alpha floor "
                          "(0.001): a smoother surface would look the same, so the truth may "
                          "be anywhere below; compare alpha, not roughness")
             continue
-        notes += bound_notes(key, v, s.lo, s.hi)
+        # A width optimized in log space stops at its floor, not at 0.
+        lo, hi = log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
+        notes += bound_notes(key, v, lo, hi)
     for key, path in (trajectories or {}).items():
         s = settings.get(key)
         moving = still_moving(path, log=s is not None and s.log)
@@ -48,6 +59,122 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
     if skipped_steps:
         notes.append(f"{skipped_steps} step(s) were skipped: the loss was NaN/Inf")
     return notes
+
+
+def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
+              truth_errors: dict[str, list[float]]) -> list[str]:
+    """Where the images do not decide: a parameter that moves away from a given truth while
+    the render keeps matching, and pairs of parameters that trade off."""
+    notes = []
+    for key, first, best, last in drifts_from_truth(losses, truth_errors):
+        notes.append(f"{key}: the render matches the references as well as it did, but the "
+                     f"error against the given truth grew from {best:.3g} (its lowest) to "
+                     f"{last:.3g} (started at {first:.3g}): these images do not decide it; what "
+                     f"would: {DECIDER}")
+    for a, b, r in trade_offs(losses, trajectories):
+        how = "rises as the other falls" if r < 0 else "moves with the other"
+        notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
+                     f"{r:+.2f}) while the loss stays level, so the images do not tell them "
+                     f"apart; what would decide them: {DECIDERS}")
+    for key in unmoved(trajectories, losses):
+        notes.append(f"{key} hardly moved while the loss fell: the images carry no gradient "
+                     "for it (light that would show it may never reach the camera, e.g. "
+                     "transmission at a small max_depth); what would decide it: a deeper "
+                     f"max_depth, {DECIDER}")
+    return notes
+
+
+def _smooth(x: np.ndarray, k: int = 5) -> np.ndarray:
+    k = max(1, min(k, len(x)))
+    return np.convolve(x, np.ones(k) / k, mode="valid")
+
+
+def _level(losses: list[float]) -> bool:
+    """Whether the loss is level over the second half of the history: its last quarter's
+    mean within 25% of the quarter before (noise, not descent)."""
+    finite = np.array([x for x in losses if np.isfinite(x)], dtype=np.float64)
+    if len(finite) < 20:
+        return False
+    q = len(finite) // 4
+    before, after = finite[-2 * q:-q].mean(), finite[-q:].mean()
+    return before > 0 and after > 0.75 * before
+
+
+def drifts_from_truth(losses: list[float], truth_errors: dict[str, list[float]],
+                      ) -> list[tuple[str, float, float, float]]:
+    """(key, first, lowest, last error) for each parameter whose error against the truth
+    ended well above its lowest (by at least 3% of the truth and three times the jitter of
+    its last tenth, and by half again or by 5%) while the loss ended no higher than where it
+    was at that lowest: the images stopped steering it, or steered it away."""
+    out = []
+    finite = [x for x in losses if np.isfinite(x)]
+    if len(finite) < 10:
+        return out
+    smooth = _smooth(np.asarray(finite, dtype=np.float64))
+    for key, errors in truth_errors.items():
+        e = np.asarray(errors, dtype=np.float64)
+        if len(e) < 10 or not np.all(np.isfinite(e)):
+            continue
+        at = int(np.argmin(e))
+        tail = e[-max(3, len(e) // 10):]
+        last, jitter = float(tail.mean()), float(tail.std())
+        grew = last - e[at]
+        loss_then = smooth[min(at, len(smooth) - 1)]
+        if (grew > max(0.03, 3 * jitter) and (last > 1.5 * e[at] or grew > 0.05)
+                and smooth[-1] <= 1.1 * loss_then):
+            out.append((key, float(e[0]), float(e[at]), last))
+    return out
+
+
+def _series(path: np.ndarray) -> np.ndarray:
+    """A trajectory as one number per iteration: the mean over its components."""
+    path = np.asarray(path, dtype=np.float64)
+    return path.reshape(len(path), -1).mean(axis=1)
+
+
+def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
+               min_correlation: float = 0.8) -> list[tuple[str, str, float]]:
+    """(a, b, correlation) for pairs of parameters that both wandered over the second half of
+    the history (by more than 2% of their value, turning back at least once) in step with
+    each other while the loss stayed level: a valley the images cannot resolve. A parameter
+    still heading one way is converging (or not yet done), not wandering: two of those move
+    in step too, but that says nothing about the images."""
+    if not _level(losses):
+        return []
+    moving = {}
+    for key, path in trajectories.items():
+        x = _series(path)
+        if len(x) < 40 or not np.all(np.isfinite(x)):
+            continue
+        window = _smooth(x[-len(x) // 2:])
+        span = window.max() - window.min()
+        travelled = np.sum(np.abs(np.diff(window)))
+        net = abs(window[-1] - window[0])
+        if span > 0.02 * max(abs(window.mean()), 1e-3) and travelled > 1.5 * net + 0.5 * span:
+            moving[key] = window
+    out = []
+    keys = list(moving)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            n = min(len(moving[a]), len(moving[b]))
+            r = float(np.corrcoef(moving[a][-n:], moving[b][-n:])[0, 1])
+            if np.isfinite(r) and abs(r) >= min_correlation:
+                out.append((a, b, r))
+    return out
+
+
+def unmoved(trajectories: dict[str, np.ndarray], losses: list[float]) -> list[str]:
+    """Parameters that never moved (all components within 1e-5 relative of their start)
+    while the loss fell by more than half: nothing in the images responds to them."""
+    finite = [x for x in losses if np.isfinite(x)]
+    if len(finite) < 10 or not np.mean(finite[-3:]) < 0.5 * np.mean(finite[:3]):
+        return []
+    out = []
+    for key, path in trajectories.items():
+        p = np.asarray(path, dtype=np.float64).reshape(len(path), -1)
+        if len(p) >= 10 and np.all(np.abs(p - p[0]) <= 1e-5 * np.maximum(np.abs(p[0]), 1e-3)):
+            out.append(key)
+    return out
 
 
 def _tail(n: int) -> int:

@@ -21,7 +21,9 @@ the loss); so does this one, and Python traces the next render while the backwar
 Parameters that are positive and unbounded above (radiance, extinction, scales) are optimized
 as u = log(v): a step of size lr changes v by a factor of about e^lr, the same relative change
 at 1e-3 as at 1e3, so a radiance near 1000 and a reflectance near 0.5 can share one learning
-rate, and v can never step below 0. The others are optimized as they are and clipped.
+rate, and v can never step below 0. Microfacet widths (roughness, alpha) are too, clipped in
+log space to their range: a near-specular truth lies decades below the start. The others are
+optimized as they are and clipped.
 
 With ``fit_exposure`` each reference also gets an RGB gain g (the photograph's unknown exposure
 and white balance), optimized in log space with the parameters: the loss compares render * g
@@ -40,9 +42,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import parameters
+from . import multires, parameters
 from ..truth import ParameterError, parameter_error
 from .integrator import choose
+from ..engine_api import SMALL
 from .losses import LOSSES
 
 
@@ -58,7 +61,13 @@ class Setting:
 
     @property
     def log(self) -> bool:
-        return self.lo == 0.0 and math.isinf(self.hi)
+        return parameters.log_space(self.key, self.lo, self.hi)
+
+    def latent_bounds(self) -> tuple[float, float]:
+        """[min, max] of u = log(v) for a log parameter."""
+        lo, hi = parameters.log_bounds(self.key, self.lo, self.hi)
+        return (math.log(lo) if lo > 0 else -LATENT_LIMIT,
+                math.log(hi) if math.isfinite(hi) else LATENT_LIMIT)
 
 
 @dataclass
@@ -143,12 +152,30 @@ class Optimization:
         self.params.keep(list(self.settings))
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
+        # Textures and grids large enough go coarse to fine (multires.py): their shapes per
+        # level, the level in use, and the gather map from the full shape to it.
+        self.levels: dict[str, list[tuple[int, ...]]] = {}
+        self.level: dict[str, int] = {}
+        self._maps: dict[str, mi.UInt32 | None] = {}
+        self.choices: list[str] = []  # what the optimization chose by itself, in words
         for key, s in self.settings.items():
             start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
                             s.lo, s.hi)
             if s.log:
-                start = np.log(np.maximum(start, LOG_FLOOR))
-            self.opt[key] = parameters.assign(self.params[key], start)
+                start = np.clip(np.log(np.maximum(start, LOG_FLOOR)), *s.latent_bounds())
+            value = self.params[key]
+            shapes = multires.levels(tuple(int(n) for n in value.shape)
+                                     if dr.is_tensor_v(value) else ())
+            if len(shapes) > 1:
+                self.levels[key] = shapes
+                self._set_level(key, 0, multires.downsample(start, shapes[-1], shapes[0]))
+                steps = " -> ".join("x".join(map(str, sh[:-1])) for sh in shapes)
+                self.choices.append(
+                    f"{key}: optimized coarse to fine ({steps}; the full resolution from "
+                    f"iteration {config.iterations // 2}): the pattern's low frequencies "
+                    "settle before its detail")
+            else:
+                self.opt[key] = parameters.assign(value, start)
             self.opt.set_learning_rate({key: s.learning_rate})
         # Adam keys of the log gains, by sensor; the first iteration starts them (_start_gains).
         self.gains = {sensor: f"gain{sensor}" for sensor in self.references
@@ -169,14 +196,44 @@ class Optimization:
         self.skipped_steps = 0
         self.clamped = 0
         self.recent: list[float] = []  # the last `loss.window` finite losses
+        # per iteration, the mean of each parameter too large for the records (diagnosis)
+        self.means: dict[str, list[float]] = {}
         self._judged: float | None = None
 
     # -- the loop ---------------------------------------------------------------------------
 
     def _value(self, key: str):
-        """The scene value of a parameter, v = e^u for log parameters (differentiable in u)."""
+        """The scene value of a parameter, v = e^u for log parameters, blown up to the full
+        shape for a texture at a coarse level (differentiable in u)."""
         u = self.opt[key]
+        index = self._maps.get(key)
+        if index is not None:
+            u = multires.upsample(u, self.levels[key][-1], index)
         return dr.exp(u) if self.settings[key].log else u
+
+    def _set_level(self, key: str, level: int, latent: np.ndarray) -> None:
+        """Optimizes ``key`` at ``level`` from ``latent`` (flat, that level's shape); Adam's
+        state starts afresh (the shape changes)."""
+        shapes = self.levels[key]
+        self.level[key] = level
+        self.opt[key] = mi.TensorXf(np.asarray(latent, np.float32).reshape(shapes[level]))
+        full = level == len(shapes) - 1
+        self._maps[key] = None if full else mi.UInt32(multires.index_map(shapes[-1],
+                                                                         shapes[level]))
+
+    def _refine(self, i: int) -> None:
+        """Moves textures and grids to the next level when iteration i reaches it."""
+        changed = False
+        for key, shapes in self.levels.items():
+            level = multires.level_at(i, self.config.iterations, len(shapes))
+            if level > self.level[key]:
+                current = parameters.flat(self.opt[key])
+                self._set_level(key, level, current[multires.index_map(
+                    shapes[level], shapes[self.level[key]])])
+                self.opt.set_learning_rate({key: self.settings[key].learning_rate})
+                changed = True
+        if changed:
+            self._apply()
 
     def _apply(self) -> None:
         for key in self.settings:
@@ -242,6 +299,7 @@ class Optimization:
     def step(self) -> Step:
         start = time.perf_counter()
         i, c = self.iteration, self.config
+        self._refine(i)
         if i == 0 and self.gains:
             self._start_gains()
         last = i + 1 >= c.iterations
@@ -258,6 +316,9 @@ class Optimization:
             if not (last or self._reached(loss)):
                 self._descend(total, loss, i)
         theta, gains = self._read_theta()
+        for key, v in theta.items():
+            if v.size > SMALL:
+                self.means.setdefault(key, []).append(float(np.mean(v)))
         judged = self._judge(loss)
         if judged is not None and judged < self.best.loss:
             self.best = Best(i, judged, theta, gains)
@@ -320,7 +381,10 @@ class Optimization:
         for key, s in self.settings.items():
             value = self.opt[key]
             if s.log:
-                self.opt[key] = dr.clip(value, -LATENT_LIMIT, LATENT_LIMIT)
+                lo, hi = s.latent_bounds()
+                if lo > -LATENT_LIMIT or hi < LATENT_LIMIT:
+                    self._pending.append(("clamped", self._true((value < lo) | (value > hi))))
+                self.opt[key] = dr.clip(value, lo, hi)
                 continue
             self._pending.append(("clamped", self._true((value < s.lo) | (value > s.hi))))
             self.opt[key] = dr.clip(value, s.lo, s.hi)
@@ -401,6 +465,7 @@ class Optimization:
         for n, key in enumerate(self.rates):
             value, _, _, (t, m, v, _) = self.opt.state[key]
             arrays[f"value{n}"] = parameters.flat(value)
+            arrays[f"level{n}"] = np.array([self.level.get(key, -1)], dtype=np.int32)
             arrays[f"t{n}"] = np.asarray(t, dtype=np.uint32)
             arrays[f"m{n}"] = np.asarray(m, dtype=np.float32)
             arrays[f"v{n}"] = np.asarray(v, dtype=np.float32)
@@ -429,8 +494,12 @@ class Optimization:
         self.recent = z["recent"].tolist()
         kept: dict[str, dict[str, np.ndarray]] = {"best": {}, "last": {}}
         for n, key in enumerate(self.rates):
-            self.opt[key] = (parameters.assign(self.params[key], z[f"value{n}"])
-                             if key in self.settings else mi.Float(z[f"value{n}"]))
+            if key in self.levels:
+                self._set_level(key, int(z[f"level{n}"][0]), z[f"value{n}"])
+            elif key in self.settings:
+                self.opt[key] = parameters.assign(self.params[key], z[f"value{n}"])
+            else:  # an exposure gain
+                self.opt[key] = mi.Float(z[f"value{n}"])
             value, promoted, lr, (t, m, v, vmax) = self.opt.state[key]
             self.opt.state[key] = (value, promoted, lr,
                                    (type(t)(z[f"t{n}"]), type(m)(z[f"m{n}"]),

@@ -49,7 +49,18 @@ ETA_MIN = 1.001
 # base_color and spec_trans compensated. Just above the clamp the surface looks the same and
 # the gradient is alive. (A microfacet alpha is clamped at 1e-4 too, but only a near-specular
 # truth leads there, and lifting that bound let noise kick alpha 0.001 up to 0.03-0.37.)
-ROUGHNESS_MIN = 0.032  # 0.032^2 = 0.001024
+# 0.0318^2 = 0.00101: within 1.2% of the floor in alpha, which is what the image shows.
+ROUGHNESS_MIN = 0.0318
+# Microfacet widths are optimized as u = log(v): near a specular truth (alpha 0.001-0.01) a
+# linear step of 0.1 is ten times the value and noise kicks it between the floor and 0.3;
+# in log space a step changes the width by ~10% at any scale. A width whose range starts at 0
+# (a microfacet alpha) is floored at Mitsuba's own clamp, 1e-4.
+_WIDTHS = {"roughness", "alpha", "alpha_u", "alpha_v"}
+WIDTH_FLOOR = 1e-4
+# Their default rate: a 20% change per step at full rate, so that a width can cross the
+# decades from a rough start (0.5) to a near-specular truth (0.001) in the first half of a
+# 60-iteration job under the cosine decay (at 0.1, alpha 0.5 -> 0.001 stopped at 0.1).
+WIDTH_LEARNING_RATE = 0.2
 
 _UNIT = {"reflectance", "base_color", "albedo", "diffuse_reflectance", "specular_reflectance",
          "specular_transmittance", "transmittance", "roughness", "alpha", "alpha_u", "alpha_v",
@@ -96,6 +107,19 @@ def legal_range(key: str) -> tuple[float, float]:
     if name == "g":
         return -0.999, 0.999
     return -INF, INF
+
+
+def log_space(key: str, lo: float, hi: float) -> bool:
+    """Whether the optimizer steps in u = log(v): values positive and unbounded above
+    (radiance, extinction: a step is the same relative change at any scale) and microfacet
+    widths (roughness, alpha)."""
+    return (lo == 0.0 and math.isinf(hi)) or (property_name(key) in _WIDTHS and hi > 0)
+
+
+def log_bounds(key: str, lo: float, hi: float) -> tuple[float, float]:
+    """The range in which a log-space value is kept: the width floor where lo is 0."""
+    floor = WIDTH_FLOOR if property_name(key) in _WIDTHS else 0.0
+    return max(lo, floor), hi
 
 
 def kind_and_shape(key: str, value) -> tuple[str, tuple[int, ...]] | None:
@@ -154,6 +178,8 @@ def assign(template, values: np.ndarray):
 def default_learning_rate(info: Info) -> float:
     if dielectric_eta(info.key):
         return ETA_LEARNING_RATE
+    if property_name(info.key) in _WIDTHS:
+        return WIDTH_LEARNING_RATE
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
     small = info.kind in ("scalar", "rgb")
     medium = property_name(info.key) in _MEDIUM

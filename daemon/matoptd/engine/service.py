@@ -179,7 +179,7 @@ class MitsubaEngine:
         opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
-        opt.notes = notes + [f"gradients for: {', '.join(opt.settings)}",
+        opt.notes = notes + opt.choices + [f"gradients for: {', '.join(opt.settings)}",
                              f"sensors rendered: {', '.join(map(str, opt.references))}"
                              + (f" (not rendered: {', '.join(map(str, skipped))})"
                                 if skipped else "")]
@@ -295,13 +295,22 @@ class MitsubaEngine:
         results = _results(run, _chosen(opt), render)
         opt.flush()
         paths: dict[str, list[list[float]]] = {}
+        errors: dict[str, list[float]] = {}
         for record in history:
             for key, v in record.values.items():
                 paths.setdefault(key, []).append(np.asarray(v).ravel().tolist())
+            for key, e in record.errors.items():
+                errors.setdefault(key, []).append(e.relative)
+        trajectories = {k: np.array(p) for k, p in paths.items() if len(p) == len(history)}
+        # Textures and grids travel as blobs, not in records: their means, as this worker saw
+        # them (since the job started here), stand in for them in the trade-off check.
+        for key, means in opt.means.items():
+            if key not in trajectories and len(means) >= 20:
+                trajectories[key] = np.array(means)[:, None]
         notes = diagnosis.diagnose(
             opt.settings, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
-            opt.skipped_steps,
-            {k: np.array(p) for k, p in paths.items() if len(p) == len(history)})
+            opt.skipped_steps, trajectories,
+            {k: e for k, e in errors.items() if len(e) == len(history)})
         return api.Finished(results, notes, _counters(opt))
 
     def release(self, job: str) -> None:

@@ -1,0 +1,126 @@
+"""The diagnosis of where the images do not decide, as pure logic on synthetic histories:
+no renderer, no daemon."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from matoptd.engine.diagnosis import (diagnose, drifts_from_truth, trade_offs, undecided,
+                                      unmoved)
+
+N = 100
+
+
+def _noise(seed: int, scale: float) -> np.ndarray:
+    return np.random.default_rng(seed).normal(0, scale, N)
+
+
+def _falling_then_level(seed: int = 0) -> list[float]:
+    """A loss that falls for 30 iterations, then stays level with noise."""
+    i = np.arange(N)
+    return list(0.001 + 0.05 * np.exp(-i / 8) + _noise(seed, 5e-5))
+
+
+def test_texture_absorbing_spec_trans_is_reported_against_the_truth():
+    # The thesis's Table 3 kind: spec_trans (truth 1.0) falls from 0.1 to 0 while the texture
+    # takes over the look; the render matches, the error against the truth grows to 1.
+    losses = _falling_then_level()
+    spec = np.maximum(0.1 - 0.02 * np.arange(N), 0.0)
+    errors = {"obj.spec_trans": list(np.abs(spec - 1.0)),
+              "obj.eta": list(0.1 * np.exp(-np.arange(N) / 10) + 0.002)}
+    found = drifts_from_truth(losses, errors)
+    assert [f[0] for f in found] == ["obj.spec_trans"]
+    key, first, lowest, last = found[0]
+    assert first == 0.9 and lowest == 0.9 and last == 1.0
+    note = undecided(losses, {}, errors)[0]
+    assert "obj.spec_trans" in note and "do not decide" in note and "more views" in note
+
+
+def test_a_scalar_that_jumps_to_its_bound_at_once_is_reported():
+    # spec_trans 0.1 -> 0 in one step (truth 1.0): the error goes 0.9 -> 1.0 and stays there.
+    losses = _falling_then_level()
+    errors = {"obj.spec_trans": [0.9] + [1.0] * (N - 1)}
+    assert [f[0] for f in drifts_from_truth(losses, errors)] == ["obj.spec_trans"]
+
+
+def test_a_noisy_converged_error_is_not_reported():
+    losses = _falling_then_level()
+    errors = {"obj.eta": list(0.004 + np.abs(_noise(11, 0.004)))}
+    assert drifts_from_truth(losses, errors) == []
+
+
+def test_converging_parameters_are_not_reported():
+    losses = _falling_then_level()
+    errors = {"obj.base_color": list(0.9 * np.exp(-np.arange(N) / 10) + 0.01
+                                     + np.abs(_noise(1, 0.003)))}
+    paths = {"obj.base_color": (0.41 - 0.3 * np.exp(-np.arange(N) / 10)
+                                + _noise(2, 0.002))[:, None],
+             "obj.eta": (1.49 + 0.05 * np.exp(-np.arange(N) / 10) + _noise(3, 0.001))[:, None]}
+    assert drifts_from_truth(losses, errors) == []
+    assert trade_offs(losses, paths) == []
+    assert unmoved(paths, losses) == []
+
+
+def test_error_growing_while_the_loss_falls_further_is_reported_but_not_while_it_rises():
+    i = np.arange(N)
+    errors = {"obj.eta": list(np.where(i < 30, 0.05 - 0.0015 * i, 0.005 + 0.002 * (i - 30)))}
+    falling = list(0.01 * np.exp(-i / 30))
+    assert [f[0] for f in drifts_from_truth(falling, errors)] == ["obj.eta"]
+    # The loss rose with the error: the images did steer it, the optimizer went astray.
+    rising = list(0.001 + 0.0001 * i)
+    assert drifts_from_truth(rising, errors) == []
+
+
+def test_two_parameters_drifting_against_each_other_on_a_level_loss_trade_off():
+    # eta against base_color where transmission never shows: both wander along a valley.
+    losses = list(0.002 + _noise(4, 5e-5))
+    walk = np.r_[np.zeros(50), 0.05 * np.sin(np.linspace(0, 3 * np.pi, 50))]
+    paths = {"obj.eta": (1.5 + walk + _noise(5, 0.0005))[:, None],
+             "obj.base_color": np.stack([0.4 - 0.5 * walk + _noise(6 + c, 0.0005)
+                                         for c in range(3)], axis=1),
+             "obj.roughness": (0.2 + _noise(9, 0.0005))[:, None]}
+    found = trade_offs(losses, paths)
+    assert len(found) == 1
+    a, b, r = found[0]
+    assert {a, b} == {"obj.eta", "obj.base_color"} and r < -0.8
+    note = undecided(losses, paths, {})[0]
+    assert "trade off" in note and "obj.eta" in note and "another sensor" in note
+
+
+def test_no_trade_off_while_two_parameters_still_head_one_way_on_a_noisy_loss():
+    # Converging in step, slower than the noise lets the loss show: not a valley.
+    i = np.arange(N)
+    losses = list(0.002 + _noise(10, 5e-5))
+    paths = {"albedo": (0.3 + 0.001 * i)[:, None], "sigma_t": (0.6 - 0.002 * i)[:, None]}
+    assert trade_offs(losses, paths) == []
+
+
+def test_no_trade_off_while_the_loss_is_still_falling():
+    # Two parameters converging together move in step too, but the loss falls meanwhile.
+    i = np.arange(N)
+    losses = list(0.05 * np.exp(-i / 40))
+    paths = {"a": (0.5 + 0.3 * (1 - np.exp(-i / 40)))[:, None],
+             "b": (1.0 + 0.3 * (1 - np.exp(-i / 40)))[:, None]}
+    assert trade_offs(losses, paths) == []
+
+
+def test_a_parameter_without_gradient_is_reported_as_unmoved():
+    losses = _falling_then_level()
+    paths = {"obj.eta": np.full((N, 1), 1.54),
+             "obj.base_color": (0.41 - 0.3 * np.exp(-np.arange(N) / 10))[:, None]}
+    assert unmoved(paths, losses) == ["obj.eta"]
+    note = undecided(losses, paths, {})[0]
+    assert "obj.eta hardly moved" in note and "max_depth" in note
+
+
+def test_diagnose_passes_the_truth_errors_through():
+    class S:
+        lo, hi, log = 0.0, 1.0, False
+
+    losses = _falling_then_level()
+    spec = np.maximum(0.1 - 0.02 * np.arange(N), 0.0)
+    notes = diagnose({"obj.spec_trans": S()}, {"obj.spec_trans": np.array([0.0])}, losses, 0, 0,
+                     {"obj.spec_trans": spec[:, None]},
+                     {"obj.spec_trans": list(np.abs(spec - 1.0))})
+    assert any("do not decide" in n for n in notes)
+    assert any("ended at the min 0" in n for n in notes)
