@@ -100,12 +100,15 @@ class _WithMetadata:
 @pytest.fixture(scope="session")
 def node_tools() -> Path:
     """clients/examples/node with its npm packages (grpc-js, proto-loader, buf) installed
-    from the lock file: the example clients and the API's lint and breaking checks use them."""
+    at the lock file's versions: the example clients and the API's lint and breaking checks
+    use them."""
     folder = ROOT / "clients" / "examples" / "node"
     if not shutil.which("npm"):
         pytest.skip("needs Node.js and npm")
     if not (folder / "node_modules" / ".bin" / "buf").exists():
-        subprocess.run(["npm", "ci", "--no-audit", "--no-fund"], cwd=folder, check=True,
+        # `npm install` keeps the lock file's versions; `npm ci` refuses a lock file that
+        # lists only this platform's build of buf, as npm 11 writes it.
+        subprocess.run(["npm", "install", "--no-audit", "--no-fund"], cwd=folder, check=True,
                        capture_output=True, timeout=600)
     return folder
 

@@ -123,4 +123,4 @@ def test_diagnose_passes_the_truth_errors_through():
                      {"obj.spec_trans": spec[:, None]},
                      {"obj.spec_trans": list(np.abs(spec - 1.0))})
     assert any("do not decide" in n for n in notes)
-    assert any("ended at the min 0" in n for n in notes)
+    assert any("ended on its lower bound 0" in n for n in notes)
