@@ -207,7 +207,17 @@ def test_a_cancel_that_arrives_while_the_job_parks_still_ends_it():
     load = s.next("w0")                            # loaded again, to make its results
     assert (load.kind, load.job) == ("load", "a")
     s.done(load)
-    assert s.next("w0").kind == "cancel"
+    cancel = s.next("w0")
+    assert cancel.kind == "cancel"
+    s.done(cancel)
+    s.end("a", 1)                                  # the paused job's end phase runs too
+    results = s.next("w0")
+    assert (results.kind, results.job) == ("results", "a")
+    s.done(results)
+    finish = s.next("w0")
+    assert (finish.kind, finish.job) == ("finish", "a")
+    s.done(finish, finished=True)
+    assert "a" not in s.jobs
 
 
 def test_pausing_or_cancelling_a_job_that_is_not_loaded_needs_no_worker():

@@ -76,7 +76,8 @@ class Job:
 
     @property
     def wants_worker(self) -> bool:
-        return (not self.paused and self.control != "pause") or (
+        # A cancelled job, paused or not, still needs a worker to make its results.
+        return (not self.paused and self.control != "pause") or self.ending or (
             self.control == "cancel" and self.started)
 
 
