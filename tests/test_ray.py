@@ -25,15 +25,15 @@ pytestmark = pytest.mark.ray
 TRUTH = {"red.reflectance.value": [0.570068, 0.0430135, 0.0443706],
          "green.reflectance.value": [0.105421, 0.37798, 0.076425]}
 NODE = {"num_cpus": 1, "num_gpus": 1}
+HEAD = {"num_cpus": 1, "num_gpus": 0, "include_dashboard": False,
+        # A node that stops answering is declared dead within about 2 s, not 30.
+        "_system_config": {"health_check_period_ms": 500, "health_check_failure_threshold": 4}}
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    c = ray_cluster_utils.Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "num_gpus": 0, "include_dashboard": False,
-        # A node that stops answering is declared dead within about 2 s, not 30.
-        "_system_config": {"health_check_period_ms": 500,
-                           "health_check_failure_threshold": 4}})
+    c = ray_cluster_utils.Cluster()
+    join_node(c, HEAD)  # the first node is the head
     for _ in range(2):
         join_node(c)
     c.wait_for_nodes()
@@ -54,12 +54,12 @@ def service(cluster, tmp_path_factory):
     d.stop()
 
 
-def join_node(cluster) -> None:
-    """Adds a GPU node; on a loaded 2-core machine Ray's own start-up of a node can time out
-    talking to the head, which is the harness's failure, not the daemon's: try again."""
+def join_node(cluster, args: dict = NODE) -> None:
+    """Adds a node; Ray gives a starting node 30 s to register with the head, which a loaded
+    2-core machine can miss: that is the harness's failure, not the daemon's, so try again."""
     for attempt in range(3):
         try:
-            cluster.add_node(**NODE)
+            cluster.add_node(**args)
             return
         except Exception:  # noqa: BLE001 - Ray raises several kinds here
             if attempt == 2:

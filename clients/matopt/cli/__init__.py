@@ -89,8 +89,8 @@ def info(as_json: bool) -> None:
     """Show what the daemon runs.
 
     Version, Mitsuba variant, device, the user your token belongs to, the losses, schedules
-    and sensor modes jobs accept, integrators, and its renderer workers: state, device, process, memory against its limit, jobs (only
-    yours by name) and restarts.
+    and sensor modes jobs accept, integrators, and its renderer workers: state, device,
+    process, memory against its limit, jobs (only yours by name) and restarts.
     """
     client = connected()
     info = client.info or client.server.GetServerInfo(pb.GetServerInfoRequest())
@@ -103,11 +103,12 @@ def info(as_json: bool) -> None:
         "variant": info.variant,
         "device": info.device,
         "user": info.user,
-        "losses": ", ".join(info.losses),
-        "schedules": ", ".join(info.schedules),
-        "sensor modes": ", ".join(info.sensor_modes),
-        "integrators": ", ".join(info.integrators),
-        "capabilities": ", ".join(info.capabilities),
+        # Lists an older daemon does not announce are left out rather than shown empty.
+        "losses": ", ".join(info.losses) or None,
+        "schedules": ", ".join(info.schedules) or None,
+        "sensor modes": ", ".join(info.sensor_modes) or None,
+        "integrators": ", ".join(info.integrators) or None,
+        "capabilities": ", ".join(info.capabilities) or None,
         # A daemon older than the workers list reports none: say nothing rather than "none".
         "workers": workers.summary(info.workers) if info.workers else None,
     })
