@@ -27,6 +27,13 @@ sys.path.insert(0, str(HERE))
 TOKENS = {"alice": "alice-token-0123456789", "bob": "bob-token-0123456789ab"}
 
 
+def token_file(folder: Path, users: dict[str, str] = TOKENS) -> Path:
+    """A --tokens file in ``folder``: one "<token> <user>" line per user."""
+    path = folder / "tokens"
+    path.write_text("".join(f"{t} {u}\n" for u, t in users.items()))
+    return path
+
+
 class Daemon:
     """A matoptd process; ``restart()`` keeps its data dir."""
 

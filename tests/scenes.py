@@ -311,3 +311,14 @@ QUAD_CORNERS = [[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]]
 def quad_obj(corners=QUAD_CORNERS) -> bytes:
     """quad.obj of QUAD_IN_FRONT: two triangles."""
     return ("".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "f 1 2 3\nf 1 3 4\n").encode()
+
+
+def cornell_with_truth(stubs, size: int, spp: int, keys) -> tuple[pb.Scene, dict, pb.Image]:
+    """The built-in Cornell box at size x size, the scene's values of ``keys`` (the truth a
+    job should recover) and a reference of sensor 0 rendered from them at ``spp``."""
+    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(
+        overrides={"resx": str(size), "resy": str(size)}))
+    truth = {p.key: list(p.value) for p in stubs.scenes.ListSceneParameters(
+        pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in keys}
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=spp)).images[0]
+    return scene, truth, ref

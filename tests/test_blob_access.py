@@ -17,7 +17,7 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_state
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
 from matoptd.store import Store
 from scenes import camera, upload
 
@@ -36,8 +36,7 @@ SPHERE = f"""<scene version="3.0.0">
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     root = tmp_path_factory.mktemp("blob-access")
-    tokens = root / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in USERS.items()))
+    tokens = token_file(root, USERS)
     d = Daemon(root / "data", tokens, "--quota", "4M").start()
     yield d
     d.stop()

@@ -13,7 +13,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_state
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
 from test_faults import cornell_job, wait_iteration
 
 pytestmark = pytest.mark.faults
@@ -61,8 +61,7 @@ def wait_health(address: str, status: int, timeout: float = 60) -> None:
 
 
 def test_a_full_disk_holds_jobs_and_recovers_by_itself(small_disk, tmp_path):
-    tokens = tmp_path / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(tmp_path)
     daemon = Daemon(small_disk / "data", tokens).start()
     alice, bob = Stubs(daemon.address, TOKENS["alice"]), Stubs(daemon.address, TOKENS["bob"])
     try:

@@ -16,7 +16,7 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_iteration, wait_state
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_iteration, wait_state
 from scenes import create_scene, png, textured_quad
 
 pytestmark = pytest.mark.faults
@@ -26,8 +26,7 @@ WALLS = ["red.reflectance.value", "green.reflectance.value"]
 
 @pytest.fixture
 def two_users(tmp_path):
-    tokens = tmp_path / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(tmp_path)
     daemons = []
 
     def start(*extra: str) -> tuple[Daemon, Stubs, Stubs]:

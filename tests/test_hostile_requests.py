@@ -15,7 +15,7 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_state
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
 from scenes import upload
 from test_faults import WALLS, cornell_job, two_users, wait_worker, worker  # noqa: F401
 
@@ -36,8 +36,7 @@ def rpc_error(call, *args) -> grpc.RpcError:
 @pytest.fixture(scope="module")
 def users(tmp_path_factory):
     root = tmp_path_factory.mktemp("hostile")
-    tokens = root / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(root)
     daemon = Daemon(root / "data", tokens, "--max-jobs-per-user", "2",
                     "--max-tasks-per-user", "1").start()
     alice, bob = Stubs(daemon.address, TOKENS["alice"]), Stubs(daemon.address, TOKENS["bob"])

@@ -35,7 +35,7 @@ from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
 from matopt.qt.scene_control import parse_overrides  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
-from conftest import TOKENS, Daemon  # noqa: E402
+from conftest import TOKENS, Daemon, token_file  # noqa: E402
 from scenes import PRINCIPLED  # noqa: E402
 
 WALLS = ["red.reflectance.value", "green.reflectance.value", "white.reflectance.value"]
@@ -332,8 +332,7 @@ def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
 
 def test_daemon_going_away_mid_job(qtbot, tmp_path, caplog, capfd):
     caplog.set_level("DEBUG")
-    tokens = tmp_path / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(tmp_path)
     data = tmp_path / "data"
     daemon = Daemon(data, tokens).start()
     window = make_window(qtbot, tmp_path)

@@ -18,7 +18,7 @@ ray_cluster_utils = pytest.importorskip("ray.cluster_utils")
 
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
-from conftest import TOKENS, Daemon, Stubs, wait_iteration, wait_state  # noqa: E402
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_iteration, wait_state  # noqa: E402
 
 pytestmark = pytest.mark.ray
 
@@ -44,8 +44,7 @@ def cluster():
 @pytest.fixture(scope="module")
 def service(cluster, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ray")
-    tokens = tmp / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(tmp)
     d = Daemon(tmp / "data", tokens, "--ray", cluster.address,
                "--variant", "llvm_ad_rgb").start()
     alice, bob = Stubs(d.address, TOKENS["alice"]), Stubs(d.address, TOKENS["bob"])

@@ -17,8 +17,8 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import TOKENS, Daemon, Stubs, wait_iteration, wait_state
-from scenes import camera, create_scene, png, textured_quad, upload
+from conftest import Daemon, Stubs, TOKENS, token_file, wait_iteration, wait_state
+from scenes import camera, cornell_with_truth, create_scene, png, textured_quad, upload
 
 WALLS = ["red.reflectance.value", "green.reflectance.value"]
 TEXTURE = "quad.bsdf.reflectance.data"
@@ -43,12 +43,7 @@ def npy(path, array) -> str:
 @pytest.fixture(scope="module")
 def cornell(stubs):
     """The Cornell box at 64x64 with references rendered at that size, and its wall colours."""
-    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "64",
-                                                                      "resy": "64"}))
-    truth = {p.key: list(p.value) for p in stubs.scenes.ListSceneParameters(
-        pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in WALLS}
-    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=256)).images[0]
-    return scene, truth, ref
+    return cornell_with_truth(stubs, 64, 256, WALLS)
 
 
 def recover_walls(stubs, scene, ref, resolution: int = 0, **spec) -> pb.Job:
@@ -193,8 +188,7 @@ def ring_of_cameras(n: int, res: int) -> str:
 def two_users(tmp_path_factory):
     """A daemon with alice and bob, and short slices, so that turns are frequent."""
     root = tmp_path_factory.mktemp("two_users")
-    tokens = root / "tokens"
-    tokens.write_text("".join(f"{t} {u}\n" for u, t in TOKENS.items()))
+    tokens = token_file(root)
     d = Daemon(root / "data", tokens, "--slice", "0.2").start()
     users = {u: Stubs(d.address, t) for u, t in TOKENS.items()}
     yield d, users

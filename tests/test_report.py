@@ -14,6 +14,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
+from scenes import cornell_with_truth
 
 WALLS = ["red.reflectance.value", "green.reflectance.value"]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -29,11 +30,7 @@ def matopt(daemon, *args, env_extra=None) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def two_jobs(stubs):
     """Two short jobs on a 32x32 Cornell box: one with ground truth, one without."""
-    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
-                                                                      "resy": "32"}))
-    truth = {p.key: list(p.value) for p in stubs.scenes.ListSceneParameters(
-        pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in WALLS}
-    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=16)).images[0]
+    scene, truth, ref = cornell_with_truth(stubs, 32, 16, WALLS)
 
     def start(ground_truth: bool, spp: int) -> str:
         spec = pb.JobSpec(scene=scene.name, iterations=4, spp=spp, min_error=0,
