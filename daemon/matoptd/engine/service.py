@@ -7,6 +7,7 @@ directory. A job's ``Optimization`` stays in memory between ``start`` and ``rele
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import hashlib
 import os
@@ -320,6 +321,16 @@ class MitsubaEngine:
         gc.collect()
         if not self.runs:
             dr.flush_malloc_cache()
+            _trim_heap()
+
+
+def _trim_heap() -> None:
+    """Hands glibc's free arenas back to the system: without it the memory freed by a released
+    run stays resident, and the worker looks as if it still held the job."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass  # not glibc: the allocator keeps its own policy
 
 
 def _counters(opt: Optimization) -> api.Counters:
