@@ -21,7 +21,8 @@ from scenes import (QUAD_CORNERS, QUAD_IN_FRONT, colored_mesh, create_scene,
 
 def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[float] | str],
             iterations: int, spp: int = 4, reference_spp: int = 256,
-            learning_rates: dict[str, float] | None = None, **spec):
+            learning_rates: dict[str, float] | None = None,
+            smoothness: dict[str, float] | None = None, **spec):
     """Runs a job from ``starts`` (values, or a blob name of a .npy) and returns
     (parameters as listed, recovered LAST values, finished job)."""
     scene = create_scene(stubs, files, main)
@@ -35,6 +36,7 @@ def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[fl
         p = pb.ParameterSpec(key=key)
         if key in (learning_rates or {}):
             p.learning_rate = learning_rates[key]
+        p.smoothness = (smoothness or {}).get(key, 0.0)
         if isinstance(start, str):
             p.initial_blob = start
         else:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from matoptd.engine.multires import downsample, index_map, level_at, levels
+from matoptd.engine.multires import downsample, index_map, level_at, levels, neighbours
 
 
 def test_levels_halve_each_side_down_to_four_and_leave_small_ones_alone():
@@ -31,3 +31,15 @@ def test_blocks_map_to_their_coarse_texel_and_means_go_back():
     coarse = np.random.default_rng(0).uniform(size=(3, 5, 3)).astype(np.float32)
     up = coarse.ravel()[index_map((6, 10, 3), (3, 5, 3))]
     assert np.allclose(downsample(up, (6, 10, 3), (3, 5, 3)), coarse.ravel())
+
+
+def test_neighbours_pair_each_texel_with_the_next_along_each_side_within_a_channel():
+    a, b = neighbours((2, 3, 2))  # 2 rows, 3 columns, 2 channels
+    index = np.arange(12).reshape(2, 3, 2)
+    pairs = set(zip(a.tolist(), b.tolist()))
+    # 3 columns x 2 channels pairs between the rows, 2 rows x 2 column gaps x 2 channels
+    assert len(pairs) == len(a) == 6 + 8
+    assert (index[1, 2, 1], index[0, 2, 1]) in pairs
+    assert (index[0, 1, 0], index[0, 0, 0]) in pairs
+    assert all(x % 2 == y % 2 for x, y in pairs)  # never one channel against another
+    assert neighbours((1, 1, 3))[0].size == 0

@@ -124,12 +124,13 @@ def test_npy_init_and_truth_from_the_cli_and_history_shows_rmse_psnr(daemon, stu
     out = matopt(daemon.address, "job", "start", scene.name, "--ref", ref.exr_blob,
                  "--param", TEXTURE, "--init", f"{TEXTURE}=@{init}", "--truth",
                  f"{TEXTURE}={true}", "--iterations", "30", "--spp", "4", "--lr", "0.05",
-                 "--min-error", "0", "--wait")
+                 "--smooth", f"{TEXTURE}=0.01", "--min-error", "0", "--wait")
     assert out.returncode == 0, out.stderr
     name = out.stdout.strip().splitlines()[0]
     job = stubs.jobs.GetJob(pb.GetJobRequest(name=name))
     assert job.spec.parameters[0].initial_blob.startswith("blobs/")
     assert job.spec.ground_truth[0].blob.startswith("blobs/")
+    assert job.spec.parameters[0].smoothness == pytest.approx(0.01)
 
     history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
     first, last = history[0].errors[0], history[-1].errors[0]
@@ -145,6 +146,14 @@ def test_npy_init_and_truth_from_the_cli_and_history_shows_rmse_psnr(daemon, stu
     assert f"ERROR {TEXTURE}" in lines[0]
     assert f"rmse {rmse0:.6g}"[:10] in lines[1] and "psnr" in lines[1] and " dB" in lines[1]
     assert ", r " in lines[-1] and "max" not in shown.stdout.lower()
+
+
+def test_smooth_without_a_key_is_refused_on_the_command_line(daemon, texture_scene):
+    scene, ref, truth = texture_scene
+    out = matopt(daemon.address, "job", "start", scene.name, "--ref", ref.exr_blob,
+                 "--param", TEXTURE, "--smooth", "0.1")
+    assert out.returncode == 2, out.stderr
+    assert "'0.1' names no parameter: give KEY=WEIGHT" in out.stderr, out.stderr
 
 
 def test_npy_of_the_wrong_shape_is_refused_naming_file_and_shapes(daemon, stubs,

@@ -125,7 +125,8 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
                   for i, r in enumerate(spec.references)]
     parameters = [api.ParameterSetting(
         p.key, p.learning_rate, p.min, p.max,
-        value(p, read_blob, p.initial_blob, p.initial_value, f"initial value of '{p.key}'"))
+        value(p, read_blob, p.initial_blob, p.initial_value, f"initial value of '{p.key}'"),
+        p.smoothness)
         for p in spec.parameters]
     truth = {}
     for t in spec.ground_truth:

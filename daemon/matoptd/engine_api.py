@@ -154,6 +154,7 @@ class ParameterSetting:
     lo: float
     hi: float
     initial: np.ndarray | None = None  # flat; None: the scene's value
+    smoothness: float = 0.0            # weight of a texture's or grid's smoothness term
 
 
 @dataclass

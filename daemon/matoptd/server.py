@@ -405,6 +405,12 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
             raise InvalidArgument(f"initial value of '{p.key}' is not finite")
         if p.initial_blob:
             store.blob_file(p.initial_blob)
+        if not (math.isfinite(p.smoothness) and p.smoothness >= 0):
+            raise InvalidArgument(f"smoothness of '{p.key}' must be >= 0, got {p.smoothness}")
+        if p.smoothness and info.kind not in (pb.PARAMETER_KIND_TEXTURE,
+                                              pb.PARAMETER_KIND_VOLUME_GRID):
+            raise InvalidArgument(f"smoothness applies to textures and grids; '{p.key}' is of "
+                                  f"kind {enums.short_name(pb.ParameterKind, info.kind).lower()}")
         p.learning_rate, p.min, p.max = lr, lo, hi
     for t in out.ground_truth:
         if t.key not in params:

@@ -27,11 +27,13 @@ def job() -> None:
     """Optimize a scene's parameters to match reference images."""
 
 
-def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.ParameterSpec]:
+def parameter_specs(keys: Sequence[str], rates, ranges, inits, smooth=()
+                    ) -> list[pb.ParameterSpec]:
     """One ParameterSpec per --param, with only the fields the user set.
 
     Unset ``optional`` fields stay absent so the daemon applies the parameter's own defaults;
-    a --lr/--range/--init for a key that is not a --param is a mistake on the command line.
+    a --lr/--range/--init/--smooth for a key that is not a --param is a mistake on the
+    command line.
     """
     specs = {key: pb.ParameterSpec(key=key) for key in keys}
 
@@ -55,6 +57,11 @@ def parameter_specs(keys: Sequence[str], rates, ranges, inits) -> list[pb.Parame
         s.initial_value.extend(arg.values)
         if arg.npy is not None:
             s.initial_blob = arg.npy  # a local path until ``upload_values`` replaces it
+    for key, weight in smooth:
+        if key is None:
+            raise click.BadParameter(f"'{weight}' names no parameter: give KEY=WEIGHT",
+                                     param_hint="--smooth")
+        spec(key, "--smooth").smoothness = weight
     return list(specs.values())
 
 
@@ -155,6 +162,10 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
 @click.option("--init", "inits", multiple=True, type=Values(npy=True),
               help="start value of a parameter instead of the scene's: KEY=v1,v2,... or "
                    "KEY=@values.npy (textures, grids)")
+@click.option("--smooth", "smooth", multiple=True, type=LearningRate(),
+              metavar="KEY=WEIGHT",
+              help="smoothness weight of a texture or grid (e.g. 0.1): damps the noise of "
+                   "texels few pixels see [default: 0, off]")
 @click.option("--loss", metavar="NAME",
               help="image loss, one of 'matopt info' (mse, dual_buffer, mae, ...) "
                    "[daemon default: mse]")
@@ -183,7 +194,7 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
               default="best", show_default=True, help="which result of --from")
 @click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
 @json_option
-def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits,
+def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits, smooth,
           loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
@@ -206,7 +217,7 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
         learning_rate=next((rate for key, rate in rates if key is None), None),
         clamp=clamp or None, film_height=resolution, image_error_every=image_error_every,
         fit_exposure=fit_exposure or None)
-    parameters = parameter_specs(keys, rates, ranges, inits)
+    parameters = parameter_specs(keys, rates, ranges, inits, smooth)
     truth = [pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "") for t in truths]
     references = reference_files(refs, masks)
     client = connected()

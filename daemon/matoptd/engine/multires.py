@@ -60,3 +60,22 @@ def downsample(values: np.ndarray, fine: tuple[int, ...], coarse: tuple[int, ...
                         minlength=int(np.prod(coarse)))
     count = np.bincount(index, minlength=int(np.prod(coarse)))
     return (total / np.maximum(count, 1)).astype(np.float32)
+
+
+def neighbours(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (a, b) of every pair of elements adjacent along a spatial axis of
+    ``shape`` (the last axis, channels, pairs a channel with itself only)."""
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    firsts, seconds = [], []
+    for axis in range(len(shape) - 1):
+        if shape[axis] < 2:
+            continue
+        lead = [slice(None)] * len(shape)
+        lead[axis] = slice(1, None)
+        trail = [slice(None)] * len(shape)
+        trail[axis] = slice(None, -1)
+        firsts.append(index[tuple(lead)].ravel())
+        seconds.append(index[tuple(trail)].ravel())
+    if not firsts:
+        return np.zeros(0, np.uint32), np.zeros(0, np.uint32)
+    return (np.concatenate(firsts).astype(np.uint32), np.concatenate(seconds).astype(np.uint32))

@@ -58,6 +58,7 @@ class Setting:
     lo: float
     hi: float
     initial: np.ndarray | None  # None: the scene's value
+    smoothness: float = 0.0     # weight of the texture's or grid's smoothness term
 
     @property
     def log(self) -> bool:
@@ -161,6 +162,11 @@ class Optimization:
         for key, s in self.settings.items():
             start = np.clip(s.initial if s.initial is not None else self.scene_values[key],
                             s.lo, s.hi)
+            if parameters.black_tint(key, start):
+                start = np.full_like(start, np.clip(parameters.NEUTRAL_START, s.lo, s.hi))
+                self.choices.append(
+                    f"{key}: started at {parameters.NEUTRAL_START:g} instead of black: a black "
+                    "colour makes the lobes it tints black, and what they carry gets no gradient")
             if s.log:
                 start = np.clip(np.log(np.maximum(start, LOG_FLOOR)), *s.latent_bounds())
             value = self.params[key]
@@ -183,6 +189,9 @@ class Optimization:
         for key in self.gains.values():
             self.opt[key] = mi.Float(0.0, 0.0, 0.0)
             self.opt.set_learning_rate({key: GAIN_LEARNING_RATE})
+        # Per textured key, its smoothness weight and the neighbour pairs at each level.
+        self.smooth = {k: s.smoothness for k, s in self.settings.items() if s.smoothness > 0}
+        self._pairs: dict[tuple[str, int], tuple[mi.UInt32, mi.UInt32]] = {}
         self.rates = {**{k: s.learning_rate for k, s in self.settings.items()},
                       **{k: GAIN_LEARNING_RATE for k in self.gains.values()}}
         self._apply()
@@ -314,7 +323,7 @@ class Optimization:
             total /= len(self.references)
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
-                self._descend(total, loss, i)
+                self._descend(total + self._smoothness_term(), loss, i)
         theta, gains = self._read_theta()
         for key, v in theta.items():
             if v.size > SMALL:
@@ -356,8 +365,27 @@ class Optimization:
             total = self._sensor_loss(i, n, sensor, ref)
             losses.append(float(total.array[0]))
             if not last:
-                self._descend(total, losses[-1], i)
+                self._descend(total + self._smoothness_term() / len(self.references),
+                              losses[-1], i)
         return float(np.mean(losses))
+
+    def _smoothness_term(self):
+        """sum_k w_k * mean_(a,b neighbours) (v_a - v_b)^2 over the textures and grids given a
+        weight, at their current level: it damps the texel-to-texel noise of texels that few
+        pixels see, while the image decides the pattern's low frequencies. It steers the
+        gradient only; the recorded loss is the image's."""
+        term = 0.0
+        for key, weight in self.smooth.items():
+            u = self.opt[key]
+            level = self.level.get(key, 0)
+            if (key, level) not in self._pairs:
+                a, b = multires.neighbours(tuple(int(n) for n in u.shape))
+                self._pairs[key, level] = (mi.UInt32(a), mi.UInt32(b))
+            a, b = self._pairs[key, level]
+            v = dr.exp(u.array) if self.settings[key].log else u.array
+            diff = dr.gather(mi.Float, v, a) - dr.gather(mi.Float, v, b)
+            term += weight * dr.mean(dr.square(diff), axis=None)
+        return term
 
     def _read_theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
         """theta_i and its gains, before the first step changes it. Read after the loss, not

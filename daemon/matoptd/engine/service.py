@@ -177,7 +177,8 @@ class MitsubaEngine:
                         image_error_every=settings.image_error_every,
                         image_error_spp=settings.image_error_spp,
                         fit_exposure=settings.fit_exposure)
-        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial)
+        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial,
+                                            p.smoothness)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
         opt.notes = notes + opt.choices + [f"gradients for: {', '.join(opt.settings)}",
