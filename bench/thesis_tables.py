@@ -103,6 +103,7 @@ class Run:
     seconds: float
     iterations: int
     final: dict[str, np.ndarray]         # key -> values at the end
+    start: dict[str, np.ndarray]         # key -> values the run started from
     errors: dict[str, float]             # target key -> relative error at the end
     staying: dict[str, float]            # target key -> worst relative error, last fifth
     notes: list[str] = field(default_factory=list)
@@ -145,10 +146,11 @@ def run_daemon(client: mc.Client, work, case: ts.Case, plan: Plan, scene: pb.Sce
     common.require_success(job, f"thesis_tables {case.name} seed {seed}")
     last = client.jobs.GetJobResult(pb.GetJobResultRequest(name=job.job.name, which=pb.WHICH_LAST))
     final = {v.key: _value(client, work, v) for v in last.parameters}
+    start = {v.key: _value(client, work, v) for v in last.initial_parameters}
     path = [{v.key: np.asarray(v.value) for v in r.parameters if v.value} for r in job.history]
     errors, staying = _quality(case, final, path)
-    return Run("daemon", seed, job.history[-1].seconds, len(job.history), final, errors, staying,
-               list(job.job.notes))
+    return Run("daemon", seed, job.history[-1].seconds, len(job.history), final, start, errors,
+               staying, list(job.job.notes))
 
 
 def run_plain(case: ts.Case, plan: Plan, xml, references, ranges, seconds: float, seed: int,
@@ -163,13 +165,40 @@ def run_plain(case: ts.Case, plan: Plan, xml, references, ranges, seconds: float
     final = {k: np.asarray(v) for k, v in its[-1].values.items()}
     path = [{k: np.asarray(v) for k, v in it.values.items() if len(v) <= 64} for it in its]
     errors, staying = _quality(case, final, path)
-    return Run("plain", seed, its[-1].seconds, len(its), final, errors, staying)
+    start = {k: np.asarray(v, np.float64).ravel() for k, v in case.start.items()}
+    return Run("plain", seed, its[-1].seconds, len(its), final, start, errors, staying)
 
 
 UNDECIDED = ("do not decide", "trade off", "hardly moved")
 
 
-def measure(plan: Plan, settings: Settings, server: common.Daemon) -> tuple[ts.Case, list[Run]]:
+def seen_entries(xml, keys: list[str], sensors: int, variant: str) -> dict[str, np.ndarray]:
+    """Which texels or voxels of each key the views see: those whose gradient of the summed
+    renders (64 spp, at the truth) is at least 1% of the 99th percentile's. Entries no pixel
+    depends on cannot come back, whatever the optimizer."""
+    mi = plain.mitsuba(variant)
+    import drjit as dr
+    scene = mi.load_file(str(xml))
+    params = mi.traverse(scene)
+    params.keep(keys)
+    for key in keys:
+        dr.enable_grad(params[key])
+    params.update()
+    integrator = mi.load_dict({"type": "prbvolpath" if "medium" in " ".join(keys) else "prb"})
+    total = 0
+    for sensor in range(sensors):
+        total += dr.sum(mi.render(scene, params, sensor=sensor, spp=64, seed=77,
+                                  integrator=integrator), axis=None)
+    dr.backward(total)
+    out = {}
+    for key in keys:
+        g = np.abs(np.asarray(dr.grad(params[key]), dtype=np.float64)).ravel()
+        out[key] = g >= 0.01 * np.percentile(g, 99)
+    return out
+
+
+def measure(plan: Plan, settings: Settings, server: common.Daemon
+            ) -> tuple[ts.Case, list[Run], dict[str, np.ndarray]]:
     client = server.client
     case = _build(plan)
     folder = settings.work / "thesis" / case.name
@@ -189,12 +218,14 @@ def measure(plan: Plan, settings: Settings, server: common.Daemon) -> tuple[ts.C
                 client, image.exr_blob, folder / f"reference{image.sensor}.exr")
         xml = folder / "plain.xml"
         xml.write_text(common.with_ids((folder / case.main).read_text()))
+        large = [k for k, t in case.truth.items() if t.size > 64]
+        seen = seen_entries(folder / case.main, large, len(refs), server.variant) if large else {}
         runs = []
         for seed in range(plan.seeds):
             d = run_daemon(client, settings.work, case, plan, scene, refs, seed)
             p = run_plain(case, plan, xml, paths, ranges, d.seconds, seed, server.variant)
             runs += [d, p]
-        return case, runs
+        return case, runs, seen
     finally:
         client.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))
 
@@ -207,15 +238,30 @@ def _med(values: list[float], fmt: str = "{:.3f}") -> str:
     return common.spread(values, fmt)
 
 
-def texture_figures(case: ts.Case, run: Run) -> dict[str, tuple[float, float, float]]:
-    """key -> (PSNR at the start, PSNR at the end, correlation at the end), for the
-    textures and grids."""
+def texture_figures(case: ts.Case, run: Run, seen: dict[str, np.ndarray]
+                    ) -> dict[str, tuple[float, float, float, float, float]]:
+    """key -> (PSNR at the start, PSNR at the end, correlation at the end, and the last two
+    over the entries the views see), for the textures and grids."""
     out = {}
     for key, truth in case.truth.items():
         if truth.size > 64 and key in run.final:
-            out[key] = (ts.psnr(case.start[key], truth), ts.psnr(run.final[key], truth),
-                        ts.correlation(run.final[key], truth))
+            m = seen[key]
+            out[key] = (ts.psnr(run.start[key], truth), ts.psnr(run.final[key], truth),
+                        ts.correlation(run.final[key], truth),
+                        _psnr(run.final[key][m], truth[m]),
+                        _correlation(run.final[key][m], truth[m]))
     return out
+
+
+def _psnr(value: np.ndarray, truth: np.ndarray) -> float:
+    return float(-10 * np.log10(max(np.mean((value - truth) ** 2), 1e-12)))
+
+
+def _correlation(value: np.ndarray, truth: np.ndarray) -> float:
+    """Pearson's r over the entries as they are (seen entries do not form whole texels)."""
+    if value.size < 2 or np.std(value) == 0 or np.std(truth) == 0:
+        return 0.0
+    return float(np.corrcoef(value, truth)[0, 1])
 
 
 def run(settings: Settings, server: common.Daemon) -> Result:
@@ -231,7 +277,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         "within 5%; Tables 3 and 5: texture/grid PSNR rising, correlation reported).\n")
     for plan in plans(settings.quick):
         try:
-            case, runs = measure(plan, settings, server)
+            case, runs, seen = measure(plan, settings, server)
         except Exception as exc:  # noqa: BLE001 - a failed case is a figure too
             result.targets.append(Target(f"{plan.case}: case ran",
                                          f"FAILED: {type(exc).__name__}: {exc}", False))
@@ -257,22 +303,30 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                    "seconds": r.seconds, "iterations": r.iterations}
             row.update({f"end:{_short(k)}": v for k, v in r.errors.items()})
             row.update({f"staying:{_short(k)}": v for k, v in r.staying.items()})
-            for key, (p0, p1, c) in texture_figures(case, r).items():
+            for key, (p0, p1, c, ps, cs) in texture_figures(case, r, seen).items():
                 row.update({f"psnr_start:{_short(key)}": p0, f"psnr_end:{_short(key)}": p1,
-                            f"correlation:{_short(key)}": c})
+                            f"correlation:{_short(key)}": c, f"psnr_seen:{_short(key)}": ps,
+                            f"correlation_seen:{_short(key)}": cs})
             row["undecided_notes"] = sum(any(u in n for u in UNDECIDED) for n in r.notes)
             rows.append(row)
         rising = True
         for key in [k for k, t in case.truth.items() if t.size > 64]:
-            figs = {m: [texture_figures(case, r)[key] for r in by[m]] for m in by}
+            figs = {m: [texture_figures(case, r, seen)[key] for r in by[m]] for m in by}
             rising &= common.median([f[1] - f[0] for f in figs["daemon"]]) > 0
+
+            def med(method: str, i: int, fmt: str) -> str:
+                return _med([f[i] for f in figs[method]], fmt)
             lines.append("")
             lines.append(
-                f"{_short(key)} ({case.truth[key].size // 3} RGB entries): PSNR start "
-                f"{figs['daemon'][0][0]:.1f} dB -> daemon {_med([f[1] for f in figs['daemon']], '{:.1f}')}"
-                f" dB, plain {_med([f[1] for f in figs['plain']], '{:.1f}')} dB; correlation "
-                f"daemon {_med([f[2] for f in figs['daemon']], '{:.2f}')}, plain "
-                f"{_med([f[2] for f in figs['plain']], '{:.2f}')}")
+                f"{_short(key)} ({case.truth[key].size // 3} RGB entries, {seen[key].mean():.0%}"
+                f" of the components seen by the views): PSNR from the start "
+                f"(daemon {figs['daemon'][0][0]:.1f} dB, plain {figs['plain'][0][0]:.1f} dB) -> "
+                f"daemon {med('daemon', 1, '{:.1f}')} dB, plain {med('plain', 1, '{:.1f}')} dB; "
+                f"correlation daemon {med('daemon', 2, '{:.2f}')}, plain "
+                f"{med('plain', 2, '{:.2f}')}. Over the seen components: PSNR daemon "
+                f"{med('daemon', 3, '{:.1f}')} dB, plain {med('plain', 3, '{:.1f}')} dB; "
+                f"correlation daemon {med('daemon', 4, '{:.2f}')}, plain "
+                f"{med('plain', 4, '{:.2f}')}")
         lines.append("")
         lines.append(f"Time per run (the daemon's, given to the plain loop): "
                      f"{_med([r.seconds for r in by['daemon']], '{:.1f}')} s; plain iterations "

@@ -148,9 +148,9 @@ CASES = [
              "index matching here: eta climbs and the loss does not fall, which the job "
              "reports"),
     Case("eta 2.5", glass(2.5, res=32), {"ball.bsdf.eta": [1.5]}, {"ball.bsdf.eta": [2.5]}, 100,
-         # The best iteration's eta moves by a few hundredths between runs (the CPU backend's
-         # threads sum gradients in varying order; one run ended at 2.369): 6%, from 40% off.
-         tolerance={"ball.bsdf.eta": 0.06},
+         # The image hardly changes between 2.3 and 2.7, so eta's difference gradient is mostly
+         # noise there: over five seeds the last iteration ended at 2.34-2.55. 8%, from 40% off.
+         tolerance={"ball.bsdf.eta": 0.08},
          rates={"ball.bsdf.eta": 0.05},  # a whole unit away: a larger step than the default
          reference_spp=1024,
          why="a strongly refracting ball, far from the start; the image changes little between "

@@ -281,3 +281,20 @@ def test_vertex_positions_with_a_projective_integrator(stubs, daemon, tmp_path):
     assert (out / "scene" / "meshes" / "quad.ply").read_bytes().startswith(b"ply")
     _, loaded = load_exported_scene(out, "scene_optimized.xml")
     assert np.allclose(np.array(loaded[key]), got[key], atol=1e-5)
+
+
+@pytest.mark.parametrize("medium, warned", [("heterogeneous", True), ("homogeneous", False)])
+def test_a_constant_sigma_t_in_a_heterogeneous_medium_is_flagged(stubs, medium, warned):
+    """prbvolpath's gradient of a heterogeneous medium's constant sigma_t lacks the
+    transmittance's share (no null collisions against a majorant equal to it): the job says so,
+    and points to a homogeneous medium, which it does not flag."""
+    truth = np.random.default_rng(0).uniform(0.3, 0.95, (4, 4, 4, 3)).astype(np.float32)
+    xml = grid_volume(16).replace('type="heterogeneous"', f'type="{medium}"')
+    key = "box.interior_medium.sigma_t.value.value"
+    params, got, done = recover(stubs, {"vol.xml": xml.encode(), "albedo.vol": vol(truth)},
+                                "vol.xml", {key: [1.0]}, iterations=2, spp=1, reference_spp=4)
+    flagged = [n for n in done.notes
+               if n.startswith(f"{key}: a constant sigma_t in a heterogeneous medium")]
+    assert bool(flagged) == warned, done.notes
+    if warned:
+        assert "a homogeneous medium, whose albedo may still be a grid" in flagged[0]

@@ -1,5 +1,5 @@
-"""Smoothness of textures and grids (ParameterSpec.smoothness, `--smooth KEY=WEIGHT`) and the
-start of a colour given black: what a user optimizing a texture that few pixels see gets."""
+"""Smoothness of textures and grids (ParameterSpec.smoothness, `--smooth KEY=WEIGHT`): what a
+user optimizing a texture that few pixels see gets."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-import thesis_scenes as ts
 from conftest import wait_state
 from scenes import create_scene, png, textured_quad
 from test_materials import recover
@@ -49,22 +48,6 @@ def test_smoothness_damps_the_noise_of_texels_few_pixels_see(stubs):
     # Measured: RMSE 0.027 against 0.083, roughness 0.001 against 0.011 (truth's 0.0003).
     assert errors[1.0] < 0.05 and errors[1.0] < 0.5 * errors[0.0], errors
     assert roughness[1.0] < 0.2 * roughness[0.0], roughness
-
-
-def test_a_black_colour_starts_grey_and_spec_trans_comes_back(stubs):
-    """The thesis's Table 3 kind (a glass principled BSDF whose base_color is a texture,
-    started black): from black, every lobe the texture tints is black and spec_trans fell to 0
-    in 5 iterations; the job starts the texture at 0.5, says so, and spec_trans reaches the
-    truth (1.0) from 0.1."""
-    case = ts.table3(res=32)
-    key = f"{ts.BSDF}.nested_bsdf.spec_trans.value"
-    params, got, done = recover(
-        stubs, case.files, case.main, {k: list(np.ravel(v)) for k, v in case.start.items()},
-        60, spp=16, reference_spp=512)
-    assert ts.relative_error(key, got[key], case.truth[key]) < 0.05, got[key]
-    texture = f"{ts.BSDF}.nested_bsdf.base_color.data"
-    assert any(n.startswith(f"{texture}: started at 0.5 instead of black") for n in done.notes), \
-        done.notes
 
 
 @pytest.mark.parametrize("key, weight, message", [

@@ -216,7 +216,7 @@ def _medium_body(albedo: str) -> str:
             <float name="alpha" value="0.01"/>
             <float name="int_ior" value="1.49"/><float name="ext_ior" value="1"/>
         </bsdf>
-        <medium type="{'heterogeneous' if 'volume' in albedo else 'homogeneous'}" name="interior">
+        <medium type="homogeneous" name="interior">
             {albedo}
             <float name="sigma_t" value="0.4"/>
         </medium>"""

@@ -51,3 +51,32 @@ def choose(scene: mi.Scene, selected: list[str]) -> tuple[mi.Integrator, str, st
     if name == "direct_projective":
         return integrator, name, f"{why}; the scene renders direct light only"
     return integrator, name, f"{why}; max_depth {depth} ({origin})"
+
+
+def medium_notes(scene: mi.Scene, selected: list[str]) -> list[str]:
+    """Warnings for selected media properties whose gradient prbvolpath gets wrong.
+
+    A heterogeneous medium samples collisions against a majorant, the largest extinction in it
+    (heterogeneous.cpp). With a constant sigma_t the majorant equals sigma_t, so no null
+    collision is ever sampled, and the derivative of the transmittance, which prbvolpath
+    carries through null collisions, is lost: what is left says that denser is always
+    brighter. On the thesis's Table 5 kind sigma_t ran from 0.99 to 1.9 against a truth of
+    0.4; the same scene with a homogeneous medium (whose albedo may still be a grid) came
+    down toward the truth.
+    """
+    notes = []
+    for shape in scene.shapes():
+        for where in ("interior_medium", "exterior_medium"):
+            medium = getattr(shape, where)()
+            if medium is None or medium.is_homogeneous():
+                continue
+            prefixes = {f"{shape.id()}.{where}", medium.id()} - {""}
+            for key in selected:
+                if any(key.startswith(f"{p}.sigma_t.value") for p in prefixes):
+                    notes.append(
+                        f"{key}: a constant sigma_t in a heterogeneous medium gets a biased "
+                        "gradient (with no null collisions prbvolpath misses the "
+                        "transmittance's share, so it drifts denser than the images say): a "
+                        "homogeneous medium, whose albedo may still be a grid, renders the "
+                        "same extinction and differentiates it exactly")
+    return sorted(set(notes))

@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import engine_api as api, film_filter
 from . import diagnosis, images, parameters, scene as scenes, scene_export
+from .integrator import medium_notes
 from .optimize import Best, Config, Optimization, Reference, Setting
 
 
@@ -181,10 +182,10 @@ class MitsubaEngine:
                                             p.smoothness)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
-        opt.notes = notes + opt.choices + [f"gradients for: {', '.join(opt.settings)}",
-                             f"sensors rendered: {', '.join(map(str, opt.references))}"
-                             + (f" (not rendered: {', '.join(map(str, skipped))})"
-                                if skipped else "")]
+        opt.notes = notes + opt.choices + medium_notes(loaded, list(opt.settings)) + [
+            f"gradients for: {', '.join(opt.settings)}",
+            f"sensors rendered: {', '.join(map(str, opt.references))}"
+            + (f" (not rendered: {', '.join(map(str, skipped))})" if skipped else "")]
         if opt.gains:
             opt.notes.append(
                 "exposure gains: one RGB gain per reference, fitted with the parameters (render "
