@@ -17,7 +17,7 @@ truth (values in [0, 1]) at the start and end, and the per-texel/voxel correlati
 pattern (each channel's mean removed). Medians and spreads (min-max) over the seeds. The
 daemon's diagnosis notes that say where the images do not decide are counted and quoted.
 
-Sizes are chosen to finish in minutes on 2 CPU cores: 32-48 px, 40-100 iterations, one view
+Sizes are chosen to finish in minutes on 2 CPU cores: 32-48 px, 60-100 iterations, one view
 (two for the grid, from opposite sides).
 """
 
@@ -64,7 +64,7 @@ def plans(quick: bool) -> list[Plan]:
         Plan("table3", 32, round(60 * scale), seeds, why="the daemon's defaults"),
         Plan("table4", 48, round(100 * scale), seeds,
              why="the daemon's defaults; eta's range as listed (1.001-4), no user clamp"),
-        Plan("table5", 32, round(40 * scale), seeds, views=2,
+        Plan("table5", 32, round(120 * scale), seeds, views=2,
              why="the daemon's defaults; two views, opposite sides of the grid"),
     ]
 
