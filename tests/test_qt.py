@@ -11,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from PySide6.QtCore import QSettings, QTimer  # noqa: E402
 from matopt import client as mc  # noqa: E402
 from matopt.qt.app import MainWindow  # noqa: E402
 from matopt.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
+from matopt.qt.jobs_list import JobsList  # noqa: E402
 from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
 from matopt.qt.scene_control import parse_overrides  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
@@ -68,8 +70,27 @@ def connect(qtbot, window: MainWindow, address: str, token: str | None = None) -
     qtbot.waitUntil(lambda: window.connection.usable, timeout=15000)
 
 
+def wait_state(qtbot, window: MainWindow, stubs, state: int, timeout_s: float = 30) -> None:
+    """Waits for the window to show the job in ``state``; a timeout says what the daemon and
+    the window knew then."""
+    try:
+        qtbot.waitUntil(lambda: window.job.state == state, timeout=int(timeout_s * 1000))
+    except Exception as exc:
+        daemon_job = stubs.jobs.GetJob(pb.GetJobRequest(name=window.job.name))
+        raise AssertionError(
+            f"the window shows {pb.JobState.Name(window.job.state)} after {timeout_s:g} s, "
+            f"the daemon {pb.JobState.Name(daemon_job.state)} (notes {list(daemon_job.notes)}); "
+            f"calls under way {window.tasks.pending()}; watching: {window._watcher is not None}; "
+            f"banner {window.banner.label.text()!r}") from exc
+
+
 def idle(qtbot, window: MainWindow) -> None:
-    qtbot.waitUntil(lambda: window.tasks.busy() == 0, timeout=30000)
+    try:
+        qtbot.waitUntil(lambda: window.tasks.busy() == 0, timeout=30000)
+    except Exception as exc:
+        raise AssertionError(f"calls still under way after 30 s: {window.tasks.pending()}; "
+                             f"{threading.active_count()} threads; process CPU "
+                             f"{os.times()[:2]}") from exc
 
 
 @pytest.fixture
@@ -314,14 +335,14 @@ def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
     assert window.view.pause_button.isEnabled() and not window.view.resume_button.isEnabled()
 
     window.pause_job()
-    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_PAUSED, timeout=30000)
+    wait_state(qtbot, window, stubs, pb.JOB_STATE_PAUSED)
     assert window.view.resume_button.isEnabled() and not window.view.pause_button.isEnabled()
     window.resume_job()
-    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_RUNNING, timeout=30000)
+    wait_state(qtbot, window, stubs, pb.JOB_STATE_RUNNING)
     window.view.cancel_button.click()
     # The end phase (result renders) waits for a worker turn in the shared daemon, where the
     # suite's other users may still have jobs queued.
-    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_CANCELLED, timeout=120000)
+    wait_state(qtbot, window, stubs, pb.JOB_STATE_CANCELLED, 120)
     assert stubs.jobs.GetJob(pb.GetJobRequest(name=name)).state == pb.JOB_STATE_CANCELLED
     # A cancelled job keeps its results so far.
     qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
@@ -330,6 +351,38 @@ def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
                                            window.view.cancel_button))
     assert window.banner.level != "error"
     idle(qtbot, window)
+
+
+def test_a_watched_job_rewrites_its_own_row_of_a_long_list(qtbot):
+    """A running job sends several events a second, each a new state of its row; the list
+    of all the user's jobs must not be rebuilt for each (a full rebuild of 300 rows, with
+    columns sized to their contents on every cell, took 19 s and froze the window)."""
+    jobs_list = JobsList()
+    qtbot.addWidget(jobs_list)
+    jobs = []
+    for i in range(300):
+        job = pb.Job(name=f"jobs/{i:012x}", state=pb.JOB_STATE_SUCCEEDED, iteration=100)
+        job.spec.iterations = 100
+        job.create_time.FromSeconds(1_795_464_000 + i)
+        jobs.append(job)
+    running = jobs[7]
+    running.state, running.iteration = pb.JOB_STATE_RUNNING, 3
+    jobs_list.set_jobs(jobs)
+    jobs_list.set_current(running.name)
+    row = jobs_list.names().index(running.name)
+    before = [[jobs_list.table.item(r, c) for c in range(5)] for r in range(300)]
+
+    newer = pb.Job()
+    newer.CopyFrom(running)
+    newer.iteration = 40
+    jobs_list.update_job(newer)
+    assert jobs_list.table.item(row, 2).text() == "40/100"
+    assert jobs_list.table.item(row, 0).font().bold()
+    jobs_list.set_jobs(jobs_list.jobs)  # a refresh with nothing new
+    after = [[jobs_list.table.item(r, c) for c in range(5)] for r in range(300)]
+    assert all(a is b for ra, rb in zip(before, after) for a, b in zip(ra, rb))
+    assert jobs_list.table.horizontalHeader().sectionResizeMode(0) \
+        != jobs_list.table.horizontalHeader().ResizeMode.ResizeToContents
 
 
 def test_daemon_going_away_mid_job(qtbot, tmp_path, caplog, capfd):

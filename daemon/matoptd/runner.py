@@ -232,6 +232,7 @@ class Runner:
         return await asyncio.wrap_future(fut)
 
     def pause(self, owner: str, name: str) -> pb.Job:
+        log.info("%s: pause requested by %s", name, owner)
         with self.lock:
             job = self.store.get_job(name, owner)
             if job.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING):
@@ -245,6 +246,7 @@ class Runner:
             return job
 
     def resume(self, owner: str, name: str) -> pb.Job:
+        log.info("%s: resume requested by %s", name, owner)
         with self.lock:
             job = self.store.get_job(name, owner)
             if job.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING):
@@ -263,6 +265,7 @@ class Runner:
             return job
 
     def cancel(self, owner: str, name: str) -> pb.Job:
+        log.info("%s: cancel requested by %s", name, owner)
         with self.lock:
             job = self.store.get_job(name, owner)
             if job.state in FINAL:
@@ -579,6 +582,8 @@ class Runner:
             convert.counters_to_job(job, finished.counters)
             job.state, job.stop_reason = state, reason
             self._save(job)
+            log.info("%s %s at iteration %d (%s)", job.name, enums.short_name(pb.JobState, state),
+                     job.iteration, reason)
             self._forget(job.name)
             self.scheduler.done(action, iterations, finished=True)
             self.wake.notify_all()

@@ -215,7 +215,7 @@ class MainWindow(SceneControl, JobControl, ResultsControl, QMainWindow):
             if on_error:
                 on_error(exc)
 
-        self.tasks.submit(lambda: fn(client), on_done, failed)
+        self.tasks.submit(lambda: fn(client), on_done, failed, what)
         return True
 
     @Slot(str)

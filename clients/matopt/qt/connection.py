@@ -195,7 +195,8 @@ class Connection(QObject):
         self._busy = True
         self.tasks.submit(lambda: _connect(settings),
                           lambda client: self._opened(generation, client, first=True),
-                          lambda exc: self._attempt_failed(generation, exc, first=True))
+                          lambda exc: self._attempt_failed(generation, exc, first=True),
+                          "connecting")
 
     def close(self) -> None:
         self._generation += 1
@@ -277,7 +278,8 @@ class Connection(QObject):
             self._busy = True
             self.tasks.submit(lambda: _connect(settings),
                               lambda client: self._opened(generation, client, first=False),
-                              lambda exc: self._attempt_failed(generation, exc, first=False))
+                              lambda exc: self._attempt_failed(generation, exc, first=False),
+                              "reconnecting")
             return
         client = self.client
         if client is None:
@@ -287,7 +289,7 @@ class Connection(QObject):
             lambda: client.server.GetServerInfo(pb.GetServerInfoRequest(),
                                                 timeout=PROBE_TIMEOUT_S),
             lambda info: self._probed(generation, info),
-            lambda exc: self._probe_failed(generation, exc))
+            lambda exc: self._probe_failed(generation, exc), "probing the daemon")
 
     def _probed(self, generation: int, info: pb.ServerInfo) -> None:
         self._busy = False

@@ -12,7 +12,7 @@ from typing import Sequence
 
 from PySide6.QtCore import Signal
 from PySide6.QtGui import QFont
-from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLabel, QPushButton,
+from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QLabel, QPushButton,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from matopt import client as mc
@@ -48,8 +48,9 @@ class JobsList(QWidget):
         self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
         self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
-        self.table.horizontalHeader().setSectionResizeMode(
-            QHeaderView.ResizeMode.ResizeToContents)
+        # Sized to the contents once per fill (set_jobs), not on every cell change: with
+        # ResizeToContents each change measures the whole column.
+        self.table.horizontalHeader().setStretchLastSection(True)
         self.table.cellDoubleClicked.connect(lambda row, _: self._open_row(row))
         layout.addWidget(self.table)
         row = QHBoxLayout()
@@ -67,47 +68,70 @@ class JobsList(QWidget):
         self.current: str | None = None
 
     def set_jobs(self, jobs: Sequence[pb.Job]) -> None:
-        """Replaces the rows, keeping the selected job selected."""
+        """Replaces the rows, keeping the selected job selected.
+
+        Called on every refresh and every watched job's event (several a second while a job
+        runs), so cells are rewritten only where their text changed and the columns are sized
+        once per fill: a rebuild per event stalled the window once the daemon held many jobs.
+        """
         selected = self.selected_name()
         self.jobs = sorted(jobs, key=lambda j: (j.create_time.seconds, j.create_time.nanos),
                            reverse=True)
-        self.table.setRowCount(len(self.jobs))
-        for i, job in enumerate(self.jobs):
-            total = job.spec.iterations if job.spec.HasField("iterations") else 0
-            best = f"{workflow.best(job)[1]:.4g}" if workflow.best(job) else ""
-            cells = [short_id(job.name), mc.state_name(job.state),
-                     f"{job.iteration}/{total}" if total else str(job.iteration), best,
-                     created(job)]
-            tip = f"{job.name}\nscene {job.spec.scene}"
-            if job.iteration:
-                tip += f"\nlast loss {job.loss:.4g}"
-            if job.error:
-                tip += f"\n{job.error}"
-            for column, text in enumerate(cells):
-                item = QTableWidgetItem(text)
-                item.setToolTip(tip)
-                if job.name == self.current:
-                    font = QFont(item.font())
-                    font.setBold(True)
-                    item.setFont(font)
-                self.table.setItem(i, column, item)
-            if job.name == selected:
-                self.table.selectRow(i)
+        grew = self.table.rowCount() != len(self.jobs)
+        self.table.setUpdatesEnabled(False)
+        try:
+            self.table.setRowCount(len(self.jobs))
+            for i, job in enumerate(self.jobs):
+                self._fill_row(i, job)
+                if job.name == selected and self.table.currentRow() != i:
+                    self.table.selectRow(i)
+            if grew:
+                self.table.resizeColumnsToContents()
+        finally:
+            self.table.setUpdatesEnabled(True)
         self.note.setText(f"{len(self.jobs)} job{'s' if len(self.jobs) != 1 else ''}")
+
+    def _fill_row(self, i: int, job: pb.Job) -> None:
+        total = job.spec.iterations if job.spec.HasField("iterations") else 0
+        best = workflow.best(job)
+        cells = [short_id(job.name), mc.state_name(job.state),
+                 f"{job.iteration}/{total}" if total else str(job.iteration),
+                 f"{best[1]:.4g}" if best else "", created(job)]
+        tip = f"{job.name}\nscene {job.spec.scene}"
+        if job.iteration:
+            tip += f"\nlast loss {job.loss:.4g}"
+        if job.error:
+            tip += f"\n{job.error}"
+        bold = job.name == self.current
+        for column, text in enumerate(cells):
+            item = self.table.item(i, column)
+            if item is None:
+                item = QTableWidgetItem(text)
+                self.table.setItem(i, column, item)
+            elif item.text() != text:
+                item.setText(text)
+            if item.toolTip() != tip:
+                item.setToolTip(tip)
+            if item.font().bold() != bold:
+                font = QFont(item.font())
+                font.setBold(bold)
+                item.setFont(font)
 
     def update_job(self, job: pb.Job) -> None:
         """A newer state of a listed job (from its watch stream), without waiting for the next
-        ListJobs."""
+        ListJobs: its row alone."""
         for i, old in enumerate(self.jobs):
             if old.name == job.name:
                 self.jobs[i] = job
-                self.set_jobs(self.jobs)
+                self._fill_row(i, job)
                 return
 
     def set_current(self, name: str | None) -> None:
         """Marks the job the window shows (bold)."""
-        self.current = name
-        self.set_jobs(self.jobs)
+        previous, self.current = self.current, name
+        for i, job in enumerate(self.jobs):
+            if job.name in (previous, name):
+                self._fill_row(i, job)
 
     def names(self) -> list[str]:
         return [j.name for j in self.jobs]

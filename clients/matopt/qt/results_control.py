@@ -164,7 +164,8 @@ class ResultsControl:
             path = ref.image
             self.tasks.submit(lambda: read_image(path),
                               lambda image: self._deliver(pane, key, image, ref.filename,
-                                                          exr_note))
+                                                          exr_note),
+                              what=f"reading {ref.filename}")
         else:
             blob = ref.image
             self._call("fetching the reference image",

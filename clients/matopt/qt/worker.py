@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import logging
 import threading
+import time
 from typing import Any, Callable
 
 import grpc
@@ -65,16 +66,21 @@ class Tasks(QObject):
         self._pool.setMaxThreadCount(max_threads)
         self._ids = itertools.count(1)
         self._pending: dict[int, tuple[Done | None, Failed | None]] = {}
+        self._labels: dict[int, tuple[str, float]] = {}  # what, and since when (monotonic)
         self._closed = False
         self._finished.connect(self._deliver, Qt.ConnectionType.QueuedConnection)
 
     def submit(self, fn: Callable[[], Any], on_done: Done | None = None,
-               on_error: Failed | None = None) -> int:
-        """Runs ``fn()`` on a pool thread; then ``on_done(result)`` or ``on_error(exc)`` here."""
+               on_error: Failed | None = None, what: str = "a call") -> int:
+        """Runs ``fn()`` on a pool thread; then ``on_done(result)`` or ``on_error(exc)`` here.
+
+        ``what`` names the call in :meth:`pending`, for logs and for tests that wait on it.
+        """
         if self._closed:
             return 0
         ident = next(self._ids)
         self._pending[ident] = (on_done, on_error)
+        self._labels[ident] = (what, time.monotonic())
         self._pool.start(_Call(self, ident, fn))
         return ident
 
@@ -82,9 +88,16 @@ class Tasks(QObject):
         """How many submitted calls have not delivered their outcome yet (tests wait on 0)."""
         return len(self._pending)
 
+    def pending(self) -> list[str]:
+        """What the calls still under way are doing and for how long, oldest first."""
+        now = time.monotonic()
+        return [f"{what} ({now - since:.1f} s)"
+                for what, since in (self._labels[i] for i in sorted(self._pending))]
+
     @Slot(int, object, object)
     def _deliver(self, ident: int, result: Any, exc: BaseException | None) -> None:
         on_done, on_error = self._pending.pop(ident, (None, None))
+        self._labels.pop(ident, None)
         if self._closed:
             return
         if exc is None:

@@ -25,10 +25,11 @@ rate, and v can never step below 0. Microfacet widths (roughness, alpha) are too
 log space to their range: a near-specular truth lies decades below the start. The others are
 optimized as they are and clipped.
 
-A dielectric's eta is the exception to back-propagation: prb and prbvolpath sample the
-refracted direction detached from eta, so their gradient of eta lacks where the refracted rays
-go. Its derivative is taken as a central difference of the loss instead, both sides rendered
-with the same samples (_difference_gradients). A texture or grid given a smoothness weight w
+A dielectric's eta near the specular limit is the exception to back-propagation: prb and
+prbvolpath sample the refracted direction detached from eta, so their gradient of eta lacks
+where the refracted rays go, which decides the image once the lobe is narrow. While the
+surface's alpha is below parameters.SPECULAR_ALPHA, eta's derivative is taken as a central difference of
+the loss instead, both sides rendered with the same samples (_difference_gradients). A texture or grid given a smoothness weight w
 descends L + w * mean((v_a - v_b)^2) over neighbouring entries; the recorded loss is L alone.
 
 With ``fit_exposure`` each reference also gets an RGB gain g (the photograph's unknown exposure
@@ -161,6 +162,16 @@ class Optimization:
 
         self.params = mi.traverse(scene)
         self.scene_values = {k: parameters.flat(self.params[k]) for k in self.settings}
+        # Dielectric etas get central differences while their surface is near-specular
+        # (_difference_gradients): per eta, the widths beside it and the fixed ones' values.
+        # Read from a traversal of their own: a key read through self.params is marked for
+        # its update(), which then fails on the keys that keep() below drops.
+        widths = mi.traverse(scene)
+        self.differenced = {
+            k: {w: parameters.flat(widths[w]) for w in
+                parameters.microfacet_widths(k, widths.keys())}
+            for k in self.settings if parameters.dielectric_eta(k)}
+        del widths
         self.params.keep(list(self.settings))
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
@@ -203,15 +214,15 @@ class Optimization:
         # Per textured key, its smoothness weight and the neighbour pairs at each level.
         self.smooth = {k: s.smoothness for k, s in self.settings.items() if s.smoothness > 0}
         self._pairs: dict[tuple[str, int], tuple[mi.UInt32, mi.UInt32]] = {}
-        # Dielectric etas get central differences (_difference_gradients); they are scalars.
-        self.differenced = [k for k in self.settings if parameters.dielectric_eta(k)]
         self._images: dict[int, list] = {}  # sensor -> this iteration's renders, detached
-        for key in self.differenced:
+        for key, widths in self.differenced.items():
+            when = (f"while {' and '.join(widths)} shows alpha < {parameters.SPECULAR_ALPHA:g}" if widths
+                    else "(a smooth dielectric)")
             self.choices.append(
-                f"{key}: its gradient by central differences of the loss (eta +- {ETA_STEP:g}, "
-                f"the same samples on both sides): {self.integrator_name} samples the refracted "
-                "direction detached from eta, so its own gradient of eta misses where the "
-                "refracted rays go")
+                f"{key}: its gradient by central differences of the loss {when} (eta +- "
+                f"{ETA_STEP:g}, the same samples on both sides): {self.integrator_name} samples "
+                "the refracted direction detached from eta, so near the specular limit its own "
+                "gradient of eta misses where the refracted rays go")
         self.rates = {**{k: s.learning_rate for k, s in self.settings.items()},
                       **{k: GAIN_LEARNING_RATE for k in self.gains.values()}}
         self._apply()
@@ -473,7 +484,9 @@ class Optimization:
         """
         theta = self._theta[0]
         draw = 0x9E3779B9  # samples of their own, shared by both sides
-        for key in self.differenced:
+        for key, widths in self.differenced.items():
+            if not parameters.near_specular(widths, theta):
+                continue  # the AD gradient stands
             s = self.settings[key]
             v = float(theta[key][0])
             lo, hi = max(v - ETA_STEP, s.lo), min(v + ETA_STEP, s.hi)

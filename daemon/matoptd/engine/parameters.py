@@ -56,6 +56,11 @@ ETA_MIN = 1.001
 # truth leads there, and lifting that bound let noise kick alpha 0.001 up to 0.03-0.37.)
 # 0.0318^2 = 0.00101: within 1.2% of the floor in alpha, which is what the image shows.
 ROUGHNESS_MIN = 0.0318
+# Below this alpha prb's gradient of a dielectric's eta is unreliable, so the optimizer takes
+# eta's by central differences (glass blob, 48 px, 16 spp, 5 seeds: at alpha 0.01 its sign was
+# wrong 2 times in 5 at eta 1.40, as at the floor; from alpha 0.029 up it matched the
+# difference at 1.40 and 1.62, and the difference's two renders would only cost time).
+SPECULAR_ALPHA = 0.02
 # Microfacet widths are optimized as u = log(v): near a specular truth (alpha 0.001-0.01) a
 # linear step of 0.1 is ten times the value and noise kicks it between the floor and 0.3;
 # in log space a step changes the width by ~10% at any scale. A width whose range starts at 0
@@ -102,6 +107,33 @@ def dielectric_eta(key: str) -> bool:
     """`obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's complex
     IOR is a texture (`obj.eta.value`) and only needs to be non-negative."""
     return key == "eta" or key.endswith(".eta")
+
+
+def microfacet_widths(eta_key: str, keys) -> list[str]:
+    """The keys of the microfacet width beside a dielectric's eta (the principled BSDF's
+    roughness, a rough dielectric's alpha or alpha_u/alpha_v); none for a smooth dielectric."""
+    base = eta_key[:-len("eta")]
+    for names in (["roughness"], ["alpha"], ["alpha_u", "alpha_v"]):
+        found = [k for n in names for k in (base + n, base + n + ".value", base + n + ".data")
+                 if k in keys]
+        if found:
+            return found
+    return []
+
+
+def microfacet_alpha(key: str, value: np.ndarray) -> float:
+    """The GGX/Beckmann alpha a width shows (its mean if textured): the principled BSDF's
+    roughness r shows as alpha = max(0.001, r^2)."""
+    v = float(np.mean(value)) if np.size(value) else 0.0
+    return max(0.001, v * v) if property_name(key) == "roughness" else v
+
+
+def near_specular(widths: dict[str, np.ndarray], current: dict[str, np.ndarray]) -> bool:
+    """Whether every width beside an eta shows alpha below SPECULAR_ALPHA (a smooth dielectric
+    has none: always). ``widths`` holds the scene's values; an optimized width is read from
+    ``current`` (theta_i), so an eta switches to differences as its surface sharpens."""
+    return all(microfacet_alpha(w, current.get(w, fixed)) < SPECULAR_ALPHA
+               for w, fixed in widths.items())
 
 
 def legal_range(key: str) -> tuple[float, float]:
