@@ -17,6 +17,7 @@ from pathlib import Path
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
+import numpy as np
 import pytest
 
 pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed (pip install matopt-mitsuba[qt])")
@@ -38,9 +39,10 @@ from matopt.qt.scene_control import parse_overrides  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 from conftest import TOKENS, Daemon, token_file  # noqa: E402
-from scenes import PRINCIPLED  # noqa: E402
+from scenes import PRINCIPLED, png  # noqa: E402
 
 WALLS = ["red.reflectance.value", "green.reflectance.value", "white.reflectance.value"]
+LIGHT = "light.emitter.radiance.value"
 BASE_COLOR, ROUGHNESS = "shape_2.bsdf.base_color.value", "shape_2.bsdf.roughness.value"
 SECOND_SENSOR = """    <sensor type="perspective" id="side">
         <float name="fov" value="30"/>
@@ -286,6 +288,12 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     assert "seed 7" in window.kept_label.text()
     qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
     qtbot.waitUntil(lambda: sorted(window.view.plot.points) == list(range(25)), timeout=15000)
+    # The latest iteration's error of each wall against the truth, as 'matopt job history'.
+    qtbot.waitUntil(lambda: "iteration 24:" in window.view.truth_errors.text(), timeout=15000)
+    shown = window.view.truth_errors.text().splitlines()[1:]
+    assert sorted(line.split(":")[0].strip() for line in shown) == sorted(WALLS)
+    assert all("rmse " in line and " dB" in line for line in shown), shown
+    assert window.view.truth_errors.isVisible() and window.view.gains.isHidden()
     # With ground truth, each wall's relative error is plotted against time beside the loss,
     # falling from the grey start (the plot draws it: the legend names both walls).
     errors = window.view.plot.error_points()
@@ -311,6 +319,64 @@ def test_job_from_another_client_is_listed_opened_and_watched(window, qtbot, stu
     assert {p.key: list(p.initial_value) for p in spec.parameters} == {k: [0.5] * 3
                                                                         for k in WALLS}
     qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
+    idle(qtbot, window)
+
+
+def test_photograph_with_a_mask_and_an_unknown_exposure(window, qtbot, stubs, tmp_path):
+    """A "photograph" of the Cornell box taken at another exposure and white balance (the
+    light scaled by a tint: the image scales with it), with a mask over a fixture. The mask
+    chosen in the window reaches the job, and with Fit exposure ticked the result shows the
+    gains, near the tint."""
+    tint = [0.6, 0.5, 0.4]
+    window.open_cornell_box({"resx": "32", "resy": "32"})
+    qtbot.waitUntil(lambda: window.scene is not None, timeout=30000)
+    light = next(p for p in window.parameters if p.key == LIGHT)
+    dim = pb.ParameterValue(key=LIGHT, value=[v * t for v, t in zip(light.value, tint)])
+    image = stubs.scenes.RenderScene(pb.RenderSceneRequest(
+        name=window.scene.name, spp=64, parameters=[dim])).images[0]
+    photo = download(stubs, image.exr_blob, tmp_path / "dim.exr")
+    mask = np.ones((32, 32))
+    mask[20:, 10:22] = 0.0
+    (tmp_path / "dim_mask.png").write_bytes(png(mask))
+    assert window.set_reference_files([photo]) is None
+
+    # Mask ▸ Mask image… (past its dialog) and Mask ▸ Its alpha channel, on the selected row.
+    refs = window.references
+    refs.list.setCurrentRow(0)
+    assert refs.mask_button.isEnabled()
+    assert refs.set_mask(0, str(tmp_path / "dim_mask.png")) is None
+    refs.alpha_action.trigger()
+    assert "dim.exr (mask dim_mask.png, its alpha)" in refs.list.item(0).text()
+    refs.alpha_action.trigger()  # an EXR without alpha: the daemon would refuse it
+    assert refs.list.item(0).text().endswith("dim.exr (mask dim_mask.png)")
+
+    # The red wall from the scene's value, the light as it is: the gain is identifiable.
+    window.params.set_checked(WALLS[0])
+    window.settings.set_values(iterations=8, spp=16, min_error=0, fit_exposure=True)
+    window.start_job()
+    qtbot.waitUntil(lambda: window.job is not None, timeout=30000)
+    spec = stubs.jobs.GetJob(pb.GetJobRequest(name=window.job.name)).spec
+    [reference] = spec.references
+    assert reference.mask_blob.startswith("blobs/") and reference.mask_filename == "dim_mask.png"
+    assert not reference.alpha_mask and spec.fit_exposure
+    assert "(mask dim_mask.png) — on server" in refs.list.item(0).text()
+
+    qtbot.waitUntil(lambda: window.job.state == pb.JOB_STATE_SUCCEEDED, timeout=60000)
+    qtbot.waitUntil(lambda: window.result is not None, timeout=30000)
+    idle(qtbot, window)
+    assert f"mask 'dim_mask.png' leaves out {int((mask == 0).sum())} of 1024" \
+        in window.view.notes.text()
+    heading, line = window.view.gains.text().splitlines()
+    assert heading == f"Fitted exposure, best iteration {window.result.iteration}:"
+    label, values = line.strip().split(": ")
+    assert label == "gain of dim.exr"
+    assert [float(v) for v in values.split(",")] == pytest.approx(tint, rel=0.05)
+    assert window.view.truth_errors.isHidden()  # no ground truth
+
+    # Opened again (e.g. to restart), the job brings its Fit exposure along.
+    window.settings.set_values(fit_exposure=False)
+    window.open_job(window.job.name)
+    qtbot.waitUntil(lambda: window.settings.fit_exposure.isChecked(), timeout=15000)
     idle(qtbot, window)
 
 

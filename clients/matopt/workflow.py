@@ -13,6 +13,7 @@ windowed mean, not the noisy single losses).
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import uuid
@@ -179,6 +180,13 @@ def upload_references(client: mc.Client, refs: Sequence[ReferenceFile],
     return out
 
 
+def reference_label(ref: ReferenceFile) -> str:
+    """``photo.png (mask photo_mask.png)``: a reference's file and what masks it."""
+    masks = [f"mask {ref.mask_filename or ref.mask}"] if ref.mask else []
+    masks += ["its alpha"] if ref.alpha_mask else []
+    return (ref.filename or ref.image) + (f" ({', '.join(masks)})" if masks else "")
+
+
 def reference_files(references: Iterable[pb.Reference]) -> list[ReferenceFile]:
     """An earlier job's references as blobs on the daemon (a restart uploads nothing)."""
     return [ReferenceFile(image=r.blob, sensor=r.sensor if r.HasField("sensor") else None,
@@ -299,3 +307,43 @@ def best(job: pb.Job) -> tuple[int, float] | None:
 def sensor_indices(indices: Iterable[int]) -> str:
     """``#0, #2``: sensor indices that no one reads as a count ("sensors: 0")."""
     return ", ".join(f"#{i}" for i in indices)
+
+
+# ---------------------------------------------------------------------------------------------
+# Numbers as people read them
+# ---------------------------------------------------------------------------------------------
+
+
+def number(value: float) -> str:
+    """A float32 value as people read it: 0.57, 1.2e-05, inf."""
+    if math.isnan(value):
+        return "nan"
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return f"{mc.short_float(value):.6g}"
+
+
+def floats(values: Iterable[float]) -> str:
+    """``0.6, 0.5, 0.4``: a short vector (a parameter's value, a gain) to 4 digits."""
+    return ", ".join(f"{v:.4g}" for v in values)
+
+
+def parameter_error(e: pb.ParameterError) -> str:
+    """A ParameterError as people read it: RMSE, PSNR and, for textures and grids, the
+    correlation with the truth per channel ("r 0.98/0.97/0.99")."""
+    text = f"rmse {number(e.rmse)}, psnr {e.psnr:.1f} dB" if math.isfinite(e.psnr) else \
+        f"rmse {number(e.rmse)}, exact"
+    if len(e.correlation):
+        text += ", r " + "/".join("nan" if math.isnan(c) else f"{c:.3f}" for c in e.correlation)
+    return text
+
+
+def gain_reference(gain: pb.ReferenceGain) -> str:
+    """Which reference a fitted gain is for: its file name, else its sensor (``sensor #1``)."""
+    return gain.reference or f"sensor #{gain.sensor}"
+
+
+def gain_fields(gains: Iterable[pb.ReferenceGain]) -> dict[str, str]:
+    """``{"gain of dim.exr": "0.6, 0.5, 0.4"}``: the RGB gain of each reference
+    (JobSpec.fit_exposure), render x gain ~ reference."""
+    return {f"gain of {gain_reference(g)}": floats(g.rgb) for g in gains}

@@ -293,7 +293,8 @@ def status(name: str, as_json: bool) -> None:
         "best loss": best(j),
         "elapsed": f"{j.elapsed_seconds:.1f} s",
         "parameters": ", ".join(p.key for p in spec.parameters),
-        "references": ", ".join(reference_label(r) for r in spec.references),
+        "references": ", ".join(workflow.reference_label(r)
+                                for r in workflow.reference_files(spec.references)),
         "fit exposure": "yes (an RGB gain per reference)" if spec.fit_exposure else None,
         "loss function": enums.short_name(pb.Loss, spec.loss),
         "spp": spec.spp,
@@ -309,13 +310,6 @@ def status(name: str, as_json: bool) -> None:
         "created": timestamp(j.create_time),
         "updated": timestamp(j.update_time),
     })
-
-
-def reference_label(r: pb.Reference) -> str:
-    """``photo.png (mask photo_mask.png)``: a reference's file and what masks it."""
-    masks = [f"mask {r.mask_filename or r.mask_blob}"] if r.mask_blob else []
-    masks += ["its alpha"] if r.alpha_mask else []
-    return (r.filename or r.blob) + (f" ({', '.join(masks)})" if masks else "")
 
 
 @job.command()
@@ -336,15 +330,10 @@ def result(name: str, which: str, as_json: bool) -> None:
         return
     rows = {"job": r.job, "which": which.lower(), "iteration": r.iteration,
             "loss": number(r.loss)}
-    rows.update({p.key: _floats(p.value) if not p.blob else f"{p.blob} (shape "
+    rows.update({p.key: workflow.floats(p.value) if not p.blob else f"{p.blob} (shape "
                  f"{list(p.shape)})" for p in r.parameters})
-    rows.update({f"gain of {g.reference or f'sensor #{g.sensor}'}": _floats(g.rgb)
-                 for g in r.gains})
+    rows.update(workflow.gain_fields(r.gains))
     fields(rows)
-
-
-def _floats(values) -> str:
-    return ", ".join(f"{v:.4g}" for v in values)
 
 
 @job.command("watch")

@@ -7,7 +7,6 @@ stderr, so ``name=$(matopt scene load x.xml)`` captures just the name.
 from __future__ import annotations
 
 import json
-import math
 from datetime import timezone
 from typing import Any, Iterable, Sequence
 
@@ -16,7 +15,8 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from matopt import workflow
-from matopt.client import short_float
+# Shared with the Qt app; imported from here by the CLI's modules.
+from matopt.workflow import number, parameter_error  # noqa: F401
 
 json_option = click.option("--json", "as_json", is_flag=True, help="print JSON for scripts")
 
@@ -61,25 +61,6 @@ def fields(pairs: dict[str, Any]) -> None:
     width = max((len(k) for k in pairs), default=0) + 1
     for key, value in pairs.items():
         click.echo(f"{key + ':':<{width}} {value}".rstrip())
-
-
-def number(value: float) -> str:
-    """A float32 value as people read it: 0.57, 1.2e-05, inf."""
-    if math.isnan(value):
-        return "nan"
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
-    return f"{short_float(value):.6g}"
-
-
-def parameter_error(e) -> str:
-    """A ParameterError as people read it: RMSE, PSNR and, for textures and grids, the
-    correlation with the truth per channel ("r 0.98/0.97/0.99")."""
-    text = f"rmse {number(e.rmse)}, psnr {e.psnr:.1f} dB" if math.isfinite(e.psnr) else \
-        f"rmse {number(e.rmse)}, exact"
-    if len(e.correlation):
-        text += ", r " + "/".join("nan" if math.isnan(c) else f"{c:.3f}" for c in e.correlation)
-    return text
 
 
 def size(n: int) -> str:

@@ -134,7 +134,7 @@ def describe(event: pb.JobEvent, total: int = 0) -> str:
     for e in record.errors:  # with ground truth
         text += f"; {e.key}: {parameter_error(e)}"
     for g in record.gains:  # with --fit-exposure
-        text += f", gain {g.reference or f'#{g.sensor}'} " + "/".join(f"{v:.3g}" for v in g.rgb)
+        text += f", gain {workflow.gain_reference(g)} " + "/".join(f"{v:.3g}" for v in g.rgb)
     return text
 
 

@@ -138,6 +138,8 @@ class JobControl:
         self.previews = {k: v for k, v in self.previews.items() if job is None}
         self.view.plot.clear()
         self.view.result_label.setText("")
+        self.view.show_truth_errors(None)
+        self.view.show_gains([])
         self.params.clear_current()
         self.jobs.set_current(job.name if job else None)
         self.view.show_job(job)
@@ -270,8 +272,10 @@ class JobControl:
         done = record.iteration + 1  # records count from 0
         self.view.progress.setValue(min(done, self.view.progress.maximum()))
         self.view.set_numbers(done, record.loss, self.best_loss, record.seconds)
-        if self.result is None:
+        self.view.show_truth_errors(record)
+        if self.result is None:  # else the table and the gains are the result's
             self.params.show_current(record.parameters)
+            self.view.show_gains(record.gains, f"iteration {record.iteration}")
 
     def _update_title(self) -> None:
         parts = ["matopt"]

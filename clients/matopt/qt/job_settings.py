@@ -1,8 +1,9 @@
 """The job's settings besides parameters and references: loss, schedule, iterations, spp,
-min error, how sensors step, clamping. The fields start at the daemon's documented defaults
-(100 iterations, 16 spp, min error 0: off) so that what the user sees is what runs. The
-losses, schedules and sensor modes offered are the ones the daemon announces (ServerInfo),
-filled in on connecting: a loss the daemon gains shows up without a change here.
+min error, how sensors step, clamping, fitting the references' exposure. The fields start
+at the daemon's documented defaults (100 iterations, 16 spp, min error 0: off) so that what
+the user sees is what runs. The losses, schedules and sensor modes offered are the ones the
+daemon announces (ServerInfo), filled in on connecting: a loss the daemon gains shows up
+without a change here.
 """
 
 from __future__ import annotations
@@ -93,7 +94,15 @@ class JobSettingsForm(QWidget):
         form.addRow("Samples per pixel", self.spp)
         form.addRow("Min error", self.min_error)
         form.addRow("Sensors", self.sensor_mode)
+        # Photographs rarely share the scene's units: an unknown exposure and white balance
+        # would otherwise be "explained" by wrong reflectances.
+        self.fit_exposure = QCheckBox("Fit exposure")
+        self.fit_exposure.setToolTip("fit an RGB gain per reference (a photograph's unknown "
+                                     "exposure and white balance) with the parameters; keep "
+                                     "something of known brightness fixed (a white surface, "
+                                     "the light), else gain and reflectances trade off")
         form.addRow("", self.clamp)
+        form.addRow("", self.fit_exposure)
 
     def set_choices(self, choices: workflow.Choices) -> None:
         """The names this daemon accepts (from its ServerInfo, on connecting)."""
@@ -104,11 +113,13 @@ class JobSettingsForm(QWidget):
     def set_values(self, loss: str | None = None, iterations: int | None = None,
                    spp: int | None = None, min_error: float | None = None,
                    schedule: str | None = None, sensor_mode: str | None = None,
-                   clamp: bool | None = None) -> None:
+                   clamp: bool | None = None, fit_exposure: bool | None = None) -> None:
         """Sets the given fields (tests and scripts; the user types into the form)."""
         _select(self.sensor_mode, sensor_mode)
         if clamp is not None:
             self.clamp.setChecked(clamp)
+        if fit_exposure is not None:
+            self.fit_exposure.setChecked(fit_exposure)
         _select(self.loss, loss)
         _select(self.schedule, schedule)
         if iterations is not None:
@@ -128,11 +139,13 @@ class JobSettingsForm(QWidget):
         return workflow.JobSettings(
             loss=self.loss.currentData(), schedule=self.schedule.currentData(),
             sensor_mode=self.sensor_mode.currentData(), iterations=self.iterations.value(),
-            spp=self.spp.value(), min_error=min_error, clamp=self.clamp.isChecked())
+            spp=self.spp.value(), min_error=min_error, clamp=self.clamp.isChecked(),
+            fit_exposure=self.fit_exposure.isChecked())
 
     def apply(self, spec: pb.JobSpec) -> None:
         """Shows an earlier job's settings (the daemon returns them with defaults filled in)."""
         settings = workflow.settings_of(spec)
         self.set_values(loss=settings.loss, iterations=settings.iterations, spp=settings.spp,
                         min_error=settings.min_error, schedule=settings.schedule,
-                        sensor_mode=settings.sensor_mode, clamp=settings.clamp)
+                        sensor_mode=settings.sensor_mode, clamp=settings.clamp,
+                        fit_exposure=settings.fit_exposure)

@@ -1,4 +1,6 @@
-"""The right half of the window: one job's progress, controls, images and loss plot.
+"""The right half of the window: one job's progress, controls, images and loss plot, and
+what the numbers alone do not say: each parameter's error against the ground truth (a job
+given one) and the exposure gains fitted to photographs (a job with fit exposure).
 
 Only widgets live here; what happens on a click is the main window's business (it owns the
 connection and the job), so this panel can show any job: one just started, one opened from
@@ -7,7 +9,7 @@ the list, or one that finished long ago.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Iterable, Sequence
 
 from PySide6.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QGridLayout, QHBoxLayout,
                                QLabel, QProgressBar, QPushButton, QRadioButton, QSplitter,
@@ -45,6 +47,12 @@ class JobView(QWidget):
         self.notes.setToolTip("what the daemon chose for this job, and why")
         self.notes.hide()
         layout.addWidget(self.notes)
+        self.truth_errors = _detail("each parameter's error against the job's ground truth "
+                                    "(root mean square, peak signal-to-noise ratio, and for "
+                                    "textures the correlation per channel)")
+        layout.addWidget(self.truth_errors)
+        self.gains = _detail("render × gain is what the loss compares with each reference")
+        layout.addWidget(self.gains)
 
         row = QHBoxLayout()
         self.progress = QProgressBar()
@@ -176,6 +184,21 @@ class JobView(QWidget):
         self.set_numbers(job.iteration, job.loss if job.iteration else None,
                          best[1] if best else None, job.elapsed_seconds)
 
+    def show_truth_errors(self, record: pb.IterationRecord | None) -> None:
+        """The errors of ``record`` (the latest iteration); hidden for a job without ground
+        truth."""
+        if record is None:
+            _show(self.truth_errors, "", [])
+            return
+        _show(self.truth_errors, f"Error against the truth at iteration {record.iteration}:",
+              [f"{e.key}: {workflow.parameter_error(e)}" for e in record.errors])
+
+    def show_gains(self, gains: Iterable[pb.ReferenceGain], where: str = "") -> None:
+        """The fitted exposure gains of the iteration ``where`` names ("best iteration 41");
+        hidden for a job that fits none."""
+        lines = [f"{k}: {v}" for k, v in workflow.gain_fields(gains).items()]
+        _show(self.gains, f"Fitted exposure, {where}:", lines)
+
     def set_numbers(self, iteration: int, loss: float | None, best: float | None,
                     seconds: float) -> None:
         parts = [f"iteration {iteration}"]
@@ -185,6 +208,22 @@ class JobView(QWidget):
             parts.append(f"best {best:.4g}")
         parts.append(f"{seconds:.1f} s")
         self.numbers.setText("   ".join(parts))
+
+
+def _detail(tip: str) -> QLabel:
+    label = QLabel("")
+    label.setTextFormat(Qt.TextFormat.PlainText)
+    label.setWordWrap(True)
+    label.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
+    label.setToolTip(tip)
+    label.hide()
+    return label
+
+
+def _show(label: QLabel, title: str, lines: list[str]) -> None:
+    """A heading and its lines as plain text; the label hidden when there are none."""
+    label.setText("\n".join([title, *(f"  {line}" for line in lines)]) if lines else "")
+    label.setVisible(bool(lines))
 
 
 def _escape(text: str) -> str:

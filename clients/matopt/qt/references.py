@@ -6,6 +6,11 @@ from the scene's sensor count is refused at once, naming both numbers, rather th
 the daemon. A single sensor's image can also be set on its own (double-click its row); then
 only the sensors with an image are optimized against.
 
+A photograph shows more than the scene models (background, fixtures, blown-out highlights):
+*Mask* on the selected sensor's row gives its reference a mask image (black leaves a pixel out
+of the loss, white counts it) or uses the image's own alpha channel, as ``matopt job start
+--mask`` does. A new image for a sensor drops its mask: a mask belongs to one photograph.
+
 A job opened from the server (to edit and restart it) keeps its references, masks included,
 as blobs that are already there, so a restart uploads nothing.
 """
@@ -17,10 +22,10 @@ import re
 from typing import Sequence
 
 from PySide6.QtCore import Signal
-from PySide6.QtWidgets import (QFileDialog, QHBoxLayout, QListWidget, QListWidgetItem,
+from PySide6.QtWidgets import (QFileDialog, QHBoxLayout, QListWidget, QListWidgetItem, QMenu,
                                QPushButton, QVBoxLayout, QWidget)
 
-from matopt.workflow import ReferenceFile, reference_files
+from matopt.workflow import ReferenceFile, is_blob, reference_files, reference_label
 from matopt_api.v1 import matopt_pb2 as pb
 
 IMAGE_FILTER = "Images (*.png *.jpg *.jpeg *.exr);;All files (*)"
@@ -67,9 +72,12 @@ class ReferenceList(QWidget):
         self.load_button = QPushButton("Load references…")
         self.load_button.setToolTip("one image per sensor (PNG/JPEG as sRGB, OpenEXR as linear)")
         self.load_button.clicked.connect(self.choose_all)
+        self.mask_button = self._mask_button()
         self.clear_button = QPushButton("Clear")
         self.clear_button.clicked.connect(self.clear)
+        self.list.currentRowChanged.connect(lambda _: self._update_buttons())
         buttons.addWidget(self.load_button)
+        buttons.addWidget(self.mask_button)
         buttons.addWidget(self.clear_button)
         buttons.addStretch(1)
         layout.addLayout(buttons)
@@ -101,6 +109,17 @@ class ReferenceList(QWidget):
     def set_file(self, sensor: int, path: str) -> None:
         self.images[sensor] = _local(sensor, path)
         self._refresh()
+
+    def set_mask(self, sensor: int, mask: str | None) -> str | None:
+        """``sensor``'s reference gets the mask image ``mask`` (a path or a blob; None: no
+        mask image); returns the problem if that sensor has no reference yet."""
+        name = os.path.basename(mask) if mask and not is_blob(mask) else ""
+        return self._set_masking(sensor, mask=mask, mask_filename=name)
+
+    def set_alpha_mask(self, sensor: int, on: bool = True) -> str | None:
+        """Whether ``sensor``'s reference is masked by its own alpha channel (with a mask
+        image as well, the two weights multiply)."""
+        return self._set_masking(sensor, alpha_mask=on)
 
     def set_from_spec(self, references: Sequence[pb.Reference]) -> None:
         """An earlier job's references, kept as the blobs they already are on the server."""
@@ -138,13 +157,74 @@ class ReferenceList(QWidget):
             self.start_folder = os.path.dirname(path)
             self.set_file(sensor, path)
 
+    def choose_mask(self) -> None:
+        """A mask image for the selected sensor's reference."""
+        sensor = self.selected_sensor()
+        if sensor is None:
+            return
+        path, _ = QFileDialog.getOpenFileName(
+            self, f"Mask of sensor {sensor}'s reference (black: pixel left out)",
+            self.start_folder, IMAGE_FILTER)
+        if path:
+            self.set_mask(sensor, path)
+
+    def selected_sensor(self) -> int | None:
+        row = self.list.currentRow()
+        return self.sensors[row].index if 0 <= row < len(self.sensors) else None
+
     # -- internals -----------------------------------------------------------------------------
+
+    def _mask_button(self) -> QPushButton:
+        """*Mask* and its menu, acting on the selected row."""
+        button = QPushButton("Mask")
+        button.setToolTip("leave pixels of the selected sensor's reference out of the loss "
+                          "(background, fixtures, blown-out highlights)")
+        menu = QMenu(button)
+        menu.addAction("Mask image…", self.choose_mask)
+        self.alpha_action = menu.addAction("Its alpha channel")
+        self.alpha_action.setCheckable(True)
+        self.alpha_action.toggled.connect(self._alpha_toggled)
+        menu.addAction("No mask", self._no_mask)
+        button.setMenu(menu)
+        return button
+
+    def _alpha_toggled(self, on: bool) -> None:
+        sensor = self.selected_sensor()
+        ref = self.images.get(sensor) if sensor is not None else None
+        if ref is not None and ref.alpha_mask != on:
+            self.set_alpha_mask(sensor, on)
+
+    def _no_mask(self) -> None:
+        sensor = self.selected_sensor()
+        if sensor is not None:
+            self._set_masking(sensor, mask=None, mask_filename="", alpha_mask=False)
+
+    def _set_masking(self, sensor: int, **fields) -> str | None:
+        """Sets ReferenceFile ``fields`` of ``sensor``'s reference; the problem if it has
+        none."""
+        ref = self.images.get(sensor)
+        if ref is None:
+            return self._refuse(f"choose the reference image of sensor {sensor} before its mask")
+        for name, value in fields.items():
+            setattr(ref, name, value)
+        self._refresh()
+        return None
+
+    def _update_buttons(self) -> None:
+        sensor = self.selected_sensor()
+        ref = self.images.get(sensor) if sensor is not None else None
+        self.mask_button.setEnabled(ref is not None)
+        self.alpha_action.setChecked(ref is not None and ref.alpha_mask)
+        self.clear_button.setEnabled(bool(self.images))
+        self.load_button.setEnabled(bool(self.sensors))
 
     def _refuse(self, message: str) -> str:
         self.problem.emit(message)
         return message
 
     def _refresh(self) -> None:
+        row = self.list.currentRow()
+        self.list.blockSignals(True)
         self.list.clear()
         if not self.sensors:
             self.list.addItem(QListWidgetItem("(open a scene first)"))
@@ -154,13 +234,14 @@ class ReferenceList(QWidget):
             if image is None:
                 label += "— no image —"
             else:
-                label += image.filename + (" (on server)" if image.on_server else "")
-                label += " + mask" if image.mask or image.alpha_mask else ""
+                label += reference_label(image) + (" — on server" if image.on_server else "")
             item = QListWidgetItem(label)
-            item.setToolTip(image.image if image else "double-click to choose this sensor's image")
+            item.setToolTip("\n".join(f for f in (image.image, image.mask) if f) if image
+                            else "double-click to choose this sensor's image")
             self.list.addItem(item)
-        self.clear_button.setEnabled(bool(self.images))
-        self.load_button.setEnabled(bool(self.sensors))
+        self.list.setCurrentRow(min(max(row, 0), self.list.count() - 1))
+        self.list.blockSignals(False)
+        self._update_buttons()
         self.changed.emit()
 
 

@@ -52,6 +52,7 @@ class ResultsControl:
             self.view.result_label.setText(f"{label}: iteration {result.iteration}, "
                                            f"loss {result.loss:.4g}")
             self.params.show_current(result.parameters)
+            self.view.show_gains(result.gains, f"{label} iteration {result.iteration}")
             self._update_images()
             self._update_actions()
 
