@@ -65,8 +65,8 @@ class Tasks(QObject):
         self._pool = QThreadPool(self)
         self._pool.setMaxThreadCount(max_threads)
         self._ids = itertools.count(1)
-        self._pending: dict[int, tuple[Done | None, Failed | None]] = {}
-        self._labels: dict[int, tuple[str, float]] = {}  # what, and since when (monotonic)
+        # ident -> (on_done, on_error, what, since when (monotonic))
+        self._pending: dict[int, tuple[Done | None, Failed | None, str, float]] = {}
         self._closed = False
         self._finished.connect(self._deliver, Qt.ConnectionType.QueuedConnection)
 
@@ -79,8 +79,7 @@ class Tasks(QObject):
         if self._closed:
             return 0
         ident = next(self._ids)
-        self._pending[ident] = (on_done, on_error)
-        self._labels[ident] = (what, time.monotonic())
+        self._pending[ident] = (on_done, on_error, what, time.monotonic())
         self._pool.start(_Call(self, ident, fn))
         return ident
 
@@ -92,12 +91,11 @@ class Tasks(QObject):
         """What the calls still under way are doing and for how long, oldest first."""
         now = time.monotonic()
         return [f"{what} ({now - since:.1f} s)"
-                for what, since in (self._labels[i] for i in sorted(self._pending))]
+                for _, _, what, since in (self._pending[i] for i in sorted(self._pending))]
 
     @Slot(int, object, object)
     def _deliver(self, ident: int, result: Any, exc: BaseException | None) -> None:
-        on_done, on_error = self._pending.pop(ident, (None, None))
-        self._labels.pop(ident, None)
+        on_done, on_error, _, _ = self._pending.pop(ident, (None, None, "", 0.0))
         if self._closed:
             return
         if exc is None:

@@ -28,9 +28,10 @@ optimized as they are and clipped.
 A dielectric's eta near the specular limit is the exception to back-propagation: prb and
 prbvolpath sample the refracted direction detached from eta, so their gradient of eta lacks
 where the refracted rays go, which decides the image once the lobe is narrow. While the
-surface's alpha is below parameters.SPECULAR_ALPHA, eta's derivative is taken as a central difference of
-the loss instead, both sides rendered with the same samples (_difference_gradients). A texture or grid given a smoothness weight w
-descends L + w * mean((v_a - v_b)^2) over neighbouring entries; the recorded loss is L alone.
+surface's alpha is below parameters.SPECULAR_ALPHA, eta's derivative is taken as a central
+difference of the loss instead, both sides rendered with the same samples
+(_difference_gradients). A texture or grid given a smoothness weight w descends
+L + w * mean((v_a - v_b)^2) over neighbouring entries; the recorded loss is L alone.
 
 With ``fit_exposure`` each reference also gets an RGB gain g (the photograph's unknown exposure
 and white balance), optimized in log space with the parameters: the loss compares render * g
@@ -216,8 +217,8 @@ class Optimization:
         self._pairs: dict[tuple[str, int], tuple[mi.UInt32, mi.UInt32]] = {}
         self._images: dict[int, list] = {}  # sensor -> this iteration's renders, detached
         for key, widths in self.differenced.items():
-            when = (f"while {' and '.join(widths)} shows alpha < {parameters.SPECULAR_ALPHA:g}" if widths
-                    else "(a smooth dielectric)")
+            when = (f"while {' and '.join(widths)} shows alpha < "
+                    f"{parameters.SPECULAR_ALPHA:g}" if widths else "(a smooth dielectric)")
             self.choices.append(
                 f"{key}: its gradient by central differences of the loss {when} (eta +- "
                 f"{ETA_STEP:g}, the same samples on both sides): {self.integrator_name} samples "
