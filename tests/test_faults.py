@@ -93,7 +93,9 @@ def test_kill_9_of_a_worker_costs_no_job(two_users):
     b = cornell_job(bob, 150)
     poller = Poller(alice, a.name)
     wait_iteration(alice, a.name, 15)
-    wait_iteration(bob, b.name, 15)
+    # One step more: the step that crossed iteration 10 has written its checkpoint by then
+    # (records are published before a checkpoint is written).
+    wait_iteration(bob, b.name, wait_iteration(bob, b.name, 15).iteration + 1)
     victim = wait_worker(alice, (pb.WORKER_STATE_BUSY, pb.WORKER_STATE_IDLE))
     os.kill(victim.pid, signal.SIGKILL)
 
@@ -104,7 +106,8 @@ def test_kill_9_of_a_worker_costs_no_job(two_users):
     assert (done_a.state, done_b.state) == (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_SUCCEEDED), (done_a, done_b)
     notes = [n for j in (done_a, done_b) for n in j.notes if "SIGKILL" in n]
     assert notes and "goes on from its last checkpoint" in notes[0]
-    assert any(j.resumed_from.startswith("checkpoint at iteration") for j in (done_a, done_b))
+    assert any(j.resumed_from.startswith("checkpoint at iteration") for j in (done_a, done_b)), \
+        [(j.resumed_from, list(j.notes)) for j in (done_a, done_b)]
     for job, stubs in ((done_a, alice), (done_b, bob)):
         history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
         assert [r.iteration for r in history] == list(range(150))  # no gap, no repeat
