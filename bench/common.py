@@ -65,6 +65,7 @@ class Settings:
     out: Path
     quick: bool
     work: Path  # scratch space (daemon data dirs, downloads): not part of the results
+    thesis_size: bool = False  # thesis_tables at the thesis's image size (a GPU's work)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""matopt's benchmarks: ``python bench/run.py [--quick] [--out bench/results]``.
+"""matopt's benchmarks: ``python bench/run.py [--quick] [--thesis-size] [--out bench/results]``.
 
 Runs each case against a daemon of its own, started here (``python -m matoptd`` on a loopback
 port, its variant as it picks it: CUDA when a GPU works, else LLVM on the CPU; the plain-
@@ -12,7 +12,8 @@ full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
 
 A case that fails is reported as failed in the summary (with the error); the others still run.
 --quick is a smoke run of reduced cases (a few minutes on 2 CPU cores); the full run takes
-about 15-20 minutes there.
+about 15-20 minutes there. --thesis-size runs thesis_tables at the thesis's image size (a GPU's
+work); its summary is not copied to docs/benchmarks.md, whose figures are the standard run's.
 """
 
 from __future__ import annotations
@@ -103,7 +104,8 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "# matopt benchmarks",
         "",
         f"Latest {'quick (smoke) ' if settings.quick else ''}run of `python bench/run.py"
-        f"{' --quick' if settings.quick else ''}`: {when}, {seconds / 60:.1f} min.",
+        f"{' --quick' if settings.quick else ''}{' --thesis-size' if settings.thesis_size else ''}"
+        f"`: {when}, {seconds / 60:.1f} min.",
         (f"Daemon: {info.variant} on {info.device} ({len(info.workers)} worker process(es) "
          f"by default); matopt {info.version}, commit " if info else "Daemon: none started "
          "(it failed, or no case run needed one); commit ")
@@ -118,7 +120,8 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "",
         "Run it: `python bench/run.py` (the full run; it also rewrites docs/benchmarks.md) or "
         "`python bench/run.py --quick` (a smoke run of reduced cases, a few minutes); "
-        "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases. It starts a daemon "
+        "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases, `--thesis-size` runs "
+        "thesis_tables at the thesis's image size (256 px: a GPU's work). It starts a daemon "
         "per case on a loopback port (the renderer in its worker processes, the API in the "
         "daemon's own: CPU figures name which), uses the GPU when that daemon reports a CUDA "
         "variant, and needs matplotlib (`pip install 'matopt-mitsuba[plot]'`). The cases are the "
@@ -152,12 +155,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="reduced cases: a smoke run")
     p.add_argument("--out", type=Path, default=HERE / "results", help="results directory")
     p.add_argument("--only", nargs="+", choices=CASES, help="run only these cases")
+    p.add_argument("--thesis-size", action="store_true",
+                   help="thesis_tables at the thesis's image size (256 px; hours on a CPU)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
         clear(args.out)
     work = Path(tempfile.mkdtemp(prefix="matopt-bench-"))
-    settings = Settings(args.out.resolve(), args.quick, work)
+    settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
@@ -173,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     text = summary(results, settings, info, seconds, load)
     (settings.out / "summary.md").write_text(text)
     print(f"bench: wrote {settings.out / 'summary.md'} ({seconds / 60:.1f} min)", file=sys.stderr)
-    if not args.quick and not args.only and settings.out == (HERE / "results").resolve():
+    if not (args.quick or args.only or args.thesis_size) and settings.out == (HERE / "results").resolve():
         links = os.path.relpath(settings.out, DOCS.parent) + "/"
         DOCS.write_text(summary(results, settings, info, seconds, load, links))
         print(f"bench: copied the summary to {DOCS}", file=sys.stderr)
