@@ -4,9 +4,10 @@ no renderer, no daemon."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from matoptd.engine.diagnosis import (diagnose, drifts_from_truth, trade_offs, undecided,
-                                      unmoved)
+from matoptd.engine.diagnosis import (diagnose, drifts_from_truth, moving, steered, trade_offs,
+                                      undecided, unmoved)
 
 N = 100
 
@@ -124,3 +125,49 @@ def test_diagnose_passes_the_truth_errors_through():
                      {"obj.spec_trans": list(np.abs(spec - 1.0))})
     assert any("do not decide" in n for n in notes)
     assert any("ended on its lower bound 0" in n for n in notes)
+
+
+class _Roughness:
+    lo, hi, log = 0.0318, 1.0, True
+
+
+def _drifting_roughness() -> tuple[list[float], dict[str, np.ndarray]]:
+    """The Table 2 kind at 48 px: the loss is level (noise 1e-4 about 1e-3) while roughness
+    drifts from 0.060 to 0.066 over the last fifth."""
+    losses = list(0.001 + _noise(4, 1e-4))
+    path = np.concatenate([np.geomspace(0.5, 0.06, 80), np.linspace(0.06, 0.066, 20)])
+    return losses, {"blob.roughness": path[:, None]}
+
+
+def _notes(gradients: list[np.ndarray] | None) -> list[str]:
+    losses, paths = _drifting_roughness()
+    return diagnose({"blob.roughness": _Roughness()}, {"blob.roughness": np.array([0.066])},
+                    losses, 0, 0, paths,
+                    gradients=None if gradients is None else {"blob.roughness": gradients})
+
+
+def test_a_drift_on_gradients_without_a_consistent_sign_is_noise_not_convergence():
+    losses, paths = _drifting_roughness()
+    assert list(moving({"blob.roughness": _Roughness()}, paths)) == ["blob.roughness"]
+    # Zero-mean gradients of spread 1: their mean over 20 steps is within two standard errors.
+    noise = [np.array([g]) for g in _noise(6, 1.0)[:99]]
+    assert steered(noise[-20:])[0] is False
+    drift = [n for n in _notes(noise) if n.startswith("blob.roughness drifted")]
+    assert len(drift) == 1
+    assert "(0.06142 -> 0.06458 over its last 20 iterations) on noise" in drift[0]
+    assert not any("still moving" in n for n in _notes(noise))
+
+
+def test_a_drift_on_a_consistent_gradient_is_still_moving():
+    # The same drift on gradients of mean -1 (pushing it up) and spread 1: the images steer it.
+    steady = [np.array([g - 1.0]) for g in _noise(6, 1.0)[:99]]
+    assert steered(steady[-20:])[0] is True
+    notes = _notes(steady)
+    assert any(n.startswith("blob.roughness was still moving") for n in notes), notes
+    assert not any("on noise" in n for n in notes)
+    # One component of an RGB value with a consistent gradient is enough.
+    rgb = [np.array([g, -1.0 + g, g]) for g in _noise(7, 1.0)[:20]]
+    assert steered(rgb)[0] is True
+    # Too few steps (a job resumed on this worker near its end) leave it as it was.
+    assert steered([np.array([0.1])] * 4) is None
+    assert any("still moving" in n for n in _notes(None))

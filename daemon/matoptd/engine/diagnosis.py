@@ -17,11 +17,13 @@ DECIDER = ("more views (another sensor that sees it), larger images or more samp
 def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
              nonfinite_steps: int, skipped_steps: int,
              trajectories: dict[str, np.ndarray] | None = None,
-             truth_errors: dict[str, list[float]] | None = None) -> list[str]:
+             truth_errors: dict[str, list[float]] | None = None,
+             gradients: dict[str, list[np.ndarray]] | None = None) -> list[str]:
     """``trajectories``: per parameter, its value at each iteration (iterations x components),
     for the parameters small enough to be recorded inline, and the mean over components for
     the others (textures, grids). ``truth_errors``: per parameter with a ground truth, its
-    relative error at each iteration."""
+    relative error at each iteration. ``gradients``: per small parameter, the gradient of
+    each step (the latest last)."""
     notes = undecided(losses, trajectories or {}, truth_errors or {})
     for key, s in settings.items():
         v = values.get(key)
@@ -36,13 +38,19 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         # A width optimized in log space stops at its floor, not at 0.
         lo, hi = log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
         notes += bound_notes(key, v, lo, hi)
-    for key, path in (trajectories or {}).items():
-        s = settings.get(key)
-        moving = still_moving(path, log=s is not None and s.log)
-        if moving:
-            a, b = moving
-            notes.append(f"{key} was still moving when the job ended ({_short(a)} -> "
-                         f"{_short(b)} over its last {_tail(len(path))} iterations): it has not "
+    trajectories = trajectories or {}
+    for key, (a, b) in moving(settings, trajectories).items():
+        n = _tail(len(trajectories[key]))
+        drift = f"{_short(a)} -> {_short(b)} over its last {n} iterations"
+        gradient = steered((gradients or {}).get(key, [])[-n:])
+        if gradient is not None and not gradient[0]:
+            _, mean, se = gradient
+            notes.append(f"{key} drifted ({drift}) on noise: its gradient over those steps "
+                         f"averaged {_short(mean)} (standard error {_short(se)}), no consistent "
+                         "sign, so the images did not steer it there; what would decide it: "
+                         f"{DECIDER}")
+        else:
+            notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "
                          "would take it further")
     finite = [x for x in losses if np.isfinite(x)]
@@ -183,6 +191,30 @@ def _tail(n: int) -> int:
 
 def _short(v: np.ndarray) -> str:
     return ", ".join(f"{x:.4g}" for x in np.ravel(v)[:3]) + (" ..." if np.size(v) > 3 else "")
+
+
+def moving(settings: dict, trajectories: dict[str, np.ndarray]
+           ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The parameters ``still_moving`` at the end: (earlier, later) means of each."""
+    out = {}
+    for key, path in trajectories.items():
+        s = settings.get(key)
+        ends = still_moving(path, log=s is not None and s.log)
+        if ends:
+            out[key] = ends
+    return out
+
+
+def steered(gradients: list[np.ndarray]) -> tuple[bool, np.ndarray, np.ndarray] | None:
+    """(steered, mean, standard error) of the gradients of some steps, per component:
+    steered when some component's mean is over two standard errors from 0. Each step's
+    gradient comes from samples of its own, so a drift on gradients without a consistent sign
+    is Adam stepping on noise (its step is as long on noise as on signal), not descent."""
+    if len(gradients) < 5:
+        return None
+    g = np.array([np.ravel(x) for x in gradients], dtype=np.float64)
+    mean, se = g.mean(axis=0), g.std(axis=0, ddof=1) / np.sqrt(len(g))
+    return bool(np.any(np.abs(mean) > 2 * se)), mean, se
 
 
 def still_moving(path: np.ndarray, log: bool = False) -> tuple[np.ndarray, np.ndarray] | None:

@@ -175,6 +175,10 @@ class Optimization:
         del widths
         self.params.keep(list(self.settings))
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
+        # per step, the gradient each small parameter stepped on (in its latent space), read
+        # with the next theta: whether the images steered a drift (diagnosis)
+        self.gradients: dict[str, list[np.ndarray]] = {}
+        self._stepped: list[dict[str, object]] = []
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         # Textures and grids large enough go coarse to fine (multires.py): their shapes per
         # level, the level in use, and the gather map from the full shape to it.
@@ -299,11 +303,17 @@ class Optimization:
         return mi.TensorXf(img.array * dr.gather(mi.Float, gain, channel), img.shape)
 
     def flush(self, *also) -> None:
-        """Evaluates the pending guard counts (and ``also``) and adds them to the counters."""
-        dr.eval(*also, *(count for _, count in self._pending))
+        """Evaluates the pending guard counts and gradients (and ``also``) and adds them to
+        the counters and the gradient records."""
+        grads = [g for stepped in self._stepped for g in stepped.values()]
+        dr.eval(*also, *(count for _, count in self._pending), *grads)
         for counter, count in self._pending:
             setattr(self, counter, getattr(self, counter) + round(count[0]))
+        for stepped in self._stepped:
+            for key, g in stepped.items():
+                self.gradients.setdefault(key, []).append(np.array(g, dtype=np.float64))
         self._pending.clear()
+        self._stepped.clear()
 
     @staticmethod
     def _true(mask) -> mi.Float:
@@ -452,6 +462,8 @@ class Optimization:
         dr.backward(total)
         self._difference_gradients(i, sensors)
         self._sanitize_gradients()
+        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.settings
+                              if dr.width(self.opt[k]) <= SMALL})
         self.opt.step()
         for key in self.gains.values():
             self.opt[key] = dr.clip(self.opt[key], -GAIN_LIMIT, GAIN_LIMIT)

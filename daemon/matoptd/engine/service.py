@@ -313,7 +313,7 @@ class MitsubaEngine:
         notes = diagnosis.diagnose(
             opt.settings, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
             opt.skipped_steps, trajectories,
-            {k: e for k, e in errors.items() if len(e) == len(history)})
+            {k: e for k, e in errors.items() if len(e) == len(history)}, opt.gradients)
         return api.Finished(results, notes, _counters(opt))
 
     def release(self, job: str) -> None:
