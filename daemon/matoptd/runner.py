@@ -32,6 +32,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 from . import convert, engine_api as api
 from .errors import DiskFull, FailedPrecondition, Internal, InvalidArgument, NotFound, \
     ResourceExhausted, Unavailable, UserError
+from .events import EventQueue
 from .scheduler import Action, Scheduler
 from .store import Store
 from .workers import CallFailed, Worker, WorkerLost
@@ -92,7 +93,7 @@ def user_error(exc: CallFailed) -> Exception:
 
 @dataclass
 class _Watchers:
-    queues: list[tuple[asyncio.AbstractEventLoop, asyncio.Queue]] = field(default_factory=list)
+    queues: list[tuple[asyncio.AbstractEventLoop, EventQueue]] = field(default_factory=list)
 
 
 class Runner:
@@ -317,13 +318,13 @@ class Runner:
 
     # -- watching ---------------------------------------------------------------------------
 
-    def subscribe(self, name: str) -> asyncio.Queue:
-        q: asyncio.Queue = asyncio.Queue(maxsize=WATCH_QUEUE)
+    def subscribe(self, name: str) -> EventQueue:
+        q = EventQueue(maxsize=WATCH_QUEUE)
         with self.lock:
             self._watchers[name].queues.append((asyncio.get_running_loop(), q))
         return q
 
-    def unsubscribe(self, name: str, q: asyncio.Queue) -> None:
+    def unsubscribe(self, name: str, q: EventQueue) -> None:
         with self.lock:
             w = self._watchers.get(name)
             if w:
@@ -333,7 +334,7 @@ class Runner:
 
     def _publish(self, name: str, events: list[pb.JobEvent]) -> None:
         """Hands events to every watcher: one wake-up per event loop, not per watcher."""
-        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Queue]] = {}
+        by_loop: dict[asyncio.AbstractEventLoop, list[EventQueue]] = {}
         with self.lock:
             for loop, q in self._watchers.get(name, _Watchers()).queues:
                 by_loop.setdefault(loop, []).append(q)
@@ -842,14 +843,7 @@ def _phase(job: pb.Job, text: str) -> None:
     job.notes.extend(notes)
 
 
-def _offer(queues: list[asyncio.Queue], events: list[pb.JobEvent]) -> None:
-    """Queues events for watchers; a watcher too slow to keep up loses iteration events,
-    never state changes (the final one ends its stream)."""
+def _offer(queues: list[EventQueue], events: list[pb.JobEvent]) -> None:
     for q in queues:
         for event in events:
-            try:
-                q.put_nowait(event)
-            except asyncio.QueueFull:
-                if event.HasField("job"):
-                    q.get_nowait()
-                    q.put_nowait(event)
+            q.offer(event)
