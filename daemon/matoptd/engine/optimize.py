@@ -309,9 +309,12 @@ class Optimization:
         dr.eval(*also, *(count for _, count in self._pending), *grads)
         for counter, count in self._pending:
             setattr(self, counter, getattr(self, counter) + round(count[0]))
+        keep = (self.config.iterations // 5 + 5) * len(self.references)  # what diagnosis reads
         for stepped in self._stepped:
             for key, g in stepped.items():
-                self.gradients.setdefault(key, []).append(np.array(g, dtype=np.float64))
+                kept = self.gradients.setdefault(key, [])
+                kept.append(np.array(g, dtype=np.float64))
+                del kept[:-keep]
         self._pending.clear()
         self._stepped.clear()
 
