@@ -181,7 +181,7 @@ def run_plain(case: ts.Case, plan: Plan, xml, references, ranges, seconds: float
     return Run("plain", seed, its[-1].seconds, len(its), final, start, errors, staying)
 
 
-UNDECIDED = ("do not decide", "trade off", "hardly moved", "on noise")
+UNDECIDED = ("do not decide", "trade off", "hardly moved", "on noise", "do not tell")
 
 
 def seen_entries(xml, keys: list[str], sensors: int, variant: str) -> dict[str, np.ndarray]:

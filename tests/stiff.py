@@ -131,10 +131,10 @@ CASES = [
          {f"{BALL}.roughness.value": [0.5]}, {f"{BALL}.roughness.value": [0.01]}, 60,
          expect_note=("alpha floor", "on noise", *LOSS_DID_NOT_FALL),
          why="roughness 0.01: alpha = max(0.001, r^2) is floored, so roughness below ~0.03 is "
-             "invisible (its range starts at 0.0318) and the error that means something is "
-             "alpha's; prb's gradient of so narrow a lobe is mostly noise, which leaves "
-             "roughness anywhere in 0.0318-0.1: the job says it drifts on noise (its "
-             "gradient has no consistent sign), not that more iterations would help"),
+             "invisible (it is shown at no less than 0.0318) and the error that means "
+             "something is alpha's; prb's gradient of so narrow a lobe is mostly noise, which "
+             "leaves roughness at the floor or anywhere up to 0.1: the job says which, and "
+             "when its gradient has no consistent sign, not that more iterations would help"),
     Case("near-specular rough dielectric", glass(1.5, alpha=0.001),
          {"ball.bsdf.alpha.value": [0.5]}, {"ball.bsdf.alpha.value": [0.001]}, 60,
          within={"ball.bsdf.alpha.value": (1e-4, 0.1)},

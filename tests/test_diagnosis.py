@@ -8,6 +8,7 @@ import pytest
 
 from matoptd.engine.diagnosis import (diagnose, drifts_from_truth, moving, steered, trade_offs,
                                       undecided, unmoved)
+from matoptd.engine.parameters import ROUGHNESS_FLOOR
 
 N = 100
 
@@ -128,7 +129,7 @@ def test_diagnose_passes_the_truth_errors_through():
 
 
 class _Roughness:
-    lo, hi, log = 0.0318, 1.0, True
+    lo, hi, log = 0.01, 1.0, True
 
 
 def _drifting_roughness() -> tuple[list[float], dict[str, np.ndarray]]:
@@ -171,3 +172,28 @@ def test_a_drift_on_a_consistent_gradient_is_still_moving():
     # Too few steps (a job resumed on this worker near its end) leave it as it was.
     assert steered([np.array([0.1])] * 4) is None
     assert any("still moving" in n for n in _notes(None))
+
+
+def _at_floor(gradients: list[np.ndarray] | None) -> list[str]:
+    """A principled roughness shown at the floor over its last 30 iterations."""
+    path = np.concatenate([np.geomspace(0.5, ROUGHNESS_FLOOR, 70), np.full(30, ROUGHNESS_FLOOR)])
+    notes = diagnose({"blob.roughness": _Roughness()},
+                     {"blob.roughness": np.array([ROUGHNESS_FLOOR], np.float32)},
+                     list(0.001 + _noise(4, 1e-4)), 0, 0, {"blob.roughness": path[:, None]},
+                     gradients=None if gradients is None else {"blob.roughness": gradients})
+    return [n for n in notes if n.startswith("blob.roughness")]
+
+
+def test_a_roughness_at_the_floor_is_told_by_the_sign_of_its_gradient_there():
+    # Positive gradients push it lower: the images say the truth is at or below the floor.
+    pressed = _at_floor([np.array([g + 1.0]) for g in _noise(8, 1.0)[:40]])
+    assert len(pressed) == 1 and "kept pressing it there" in pressed[0], pressed
+    # No consistent sign: the images do not tell the floor from a slightly rougher surface.
+    level = _at_floor([np.array([g]) for g in _noise(6, 1.0)[:40]])
+    assert len(level) == 1 and "no consistent sign" in level[0] and "would decide" in level[0]
+    # Negative gradients pull it up (below the floor, on its way out): not converged.
+    pulled = _at_floor([np.array([g - 1.0]) for g in _noise(8, 1.0)[:40]])
+    assert len(pulled) == 1 and "pulling it up" in pulled[0], pulled
+    # Without gradient records (a job resumed on another worker) it says what the floor means.
+    assert "anywhere below" in _at_floor(None)[0]
+    assert all("alpha floor" in n for n in pressed + level + pulled)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..range_notes import bound_notes
-from .parameters import ROUGHNESS_MIN, log_bounds
+from .parameters import log_bounds, shown_floor
 
 
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
@@ -30,10 +30,10 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         if v is None:
             continue
         # v is float32: 0.0318 reads back a little off, hence the tolerance of the bounds.
-        if key.endswith("roughness.value") and np.all(v <= ROUGHNESS_MIN + 1e-6):
-            notes.append(f"{key}: ended at {ROUGHNESS_MIN:g}, the principled BSDF's alpha floor "
-                         "(0.001): a smoother surface would look the same, so the truth may "
-                         "be anywhere below; compare alpha, not roughness")
+        floor = shown_floor(key) if s.lo < s.hi else 0.0
+        if floor and np.all(v <= floor + 1e-6):
+            n = _tail(len((trajectories or {}).get(key, ())))
+            notes.append(floor_note(key, floor, (gradients or {}).get(key, [])[-n:]))
             continue
         # A width optimized in log space stops at its floor, not at 0.
         lo, hi = log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
@@ -67,6 +67,28 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
     if skipped_steps:
         notes.append(f"{skipped_steps} step(s) were skipped: the loss was NaN/Inf")
     return notes
+
+
+def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
+    """What a principled roughness ending at the floor it is shown at means, from the sign of
+    its gradient there over the last steps (positive: the images push it lower)."""
+    said = (f"{key}: ended at {floor:g}, the principled BSDF's alpha floor (0.001): a "
+            "smoother surface looks the same")
+    gradient = steered(gradients)
+    if gradient is None:
+        return (f"{said}, so the truth may be anywhere below; compare alpha, not roughness")
+    pushed, mean, se = gradient
+    if pushed and np.all(mean >= 0):
+        return (f"{said}, and the images kept pressing it there (gradient {_short(mean)}, "
+                f"standard error {_short(se)}), so the truth is at or below it; compare alpha, "
+                "not roughness")
+    if pushed:
+        return (f"{said}, but the images were pulling it up (gradient {_short(mean)}, standard "
+                f"error {_short(se)}): it had not converged; more iterations, or a restart "
+                "from this job's result, would take it further")
+    return (f"{said}, and its gradient there had no consistent sign (mean {_short(mean)}, "
+            f"standard error {_short(se)}): the images do not tell the floor from a slightly "
+            f"rougher surface; what would decide it: {DECIDER}")
 
 
 def undecided(losses: list[float], trajectories: dict[str, np.ndarray],

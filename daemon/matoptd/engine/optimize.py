@@ -72,6 +72,10 @@ class Setting:
     def log(self) -> bool:
         return parameters.log_space(self.key, self.lo, self.hi)
 
+    @property
+    def floor(self) -> float:
+        return parameters.shown_floor(self.key) if self.lo < self.hi else 0.0
+
     def latent_bounds(self) -> tuple[float, float]:
         """[min, max] of u = log(v) for a log parameter."""
         lo, hi = parameters.log_bounds(self.key, self.lo, self.hi)
@@ -249,12 +253,17 @@ class Optimization:
 
     def _value(self, key: str):
         """The scene value of a parameter, v = e^u for log parameters, blown up to the full
-        shape for a texture at a coarse level (differentiable in u)."""
+        shape for a texture at a coarse level (differentiable in u), and no less than the
+        floor a principled roughness is shown at (parameters.ROUGHNESS_FLOOR)."""
         u = self.opt[key]
         index = self._maps.get(key)
         if index is not None:
             u = multires.upsample(u, self.levels[key][-1], index)
-        return dr.exp(u) if self.settings[key].log else u
+        v = dr.exp(u) if self.settings[key].log else u
+        floor = self.settings[key].floor
+        if floor > 0:  # rendered at max(v, floor), stepped on the floor's gradient below it
+            v = v + dr.detach(dr.maximum(v, floor) - v)
+        return v
 
     def _set_level(self, key: str, level: int, latent: np.ndarray) -> None:
         """Optimizes ``key`` at ``level`` from ``latent`` (flat, that level's shape); Adam's
