@@ -30,7 +30,7 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         if v is None:
             continue
         # v is float32: 0.0318 reads back a little off, hence the tolerance of the bounds.
-        floor = shown_floor(key) if s.lo < s.hi else 0.0
+        floor = shown_floor(key, s.lo)
         if floor and np.all(v <= floor + 1e-6):
             n = _tail(len((trajectories or {}).get(key, ())))
             notes.append(floor_note(key, floor, (gradients or {}).get(key, [])[-n:]))

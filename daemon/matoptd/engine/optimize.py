@@ -41,6 +41,7 @@ with the reference. Gains are not scene parameters: they travel beside theta, as
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import math
 import time
@@ -72,9 +73,9 @@ class Setting:
     def log(self) -> bool:
         return parameters.log_space(self.key, self.lo, self.hi)
 
-    @property
-    def floor(self) -> float:
-        return parameters.shown_floor(self.key) if self.lo < self.hi else 0.0
+    @functools.cached_property
+    def floor(self) -> float:  # read by _value at every iteration
+        return parameters.shown_floor(self.key, self.lo)
 
     def latent_bounds(self) -> tuple[float, float]:
         """[min, max] of u = log(v) for a log parameter."""

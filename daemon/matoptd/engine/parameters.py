@@ -155,10 +155,10 @@ def legal_range(key: str) -> tuple[float, float]:
     return -INF, INF
 
 
-def shown_floor(key: str) -> float:
-    """The least value a parameter is rendered and reported at (0: none): a principled
-    roughness below ROUGHNESS_FLOOR shows as ROUGHNESS_FLOOR."""
-    return ROUGHNESS_FLOOR if property_name(key) == "roughness" else 0.0
+def shown_floor(key: str, lo: float) -> float:
+    """The least value a parameter with range minimum ``lo`` is rendered and reported at (0:
+    none): a principled roughness whose range reaches below ROUGHNESS_FLOOR shows as it."""
+    return ROUGHNESS_FLOOR if property_name(key) == "roughness" and lo <= ROUGHNESS_FLOOR else 0.0
 
 
 def black_tint(key: str, start: np.ndarray) -> bool:
