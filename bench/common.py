@@ -25,8 +25,8 @@ from typing import Callable, Iterator, Sequence
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))  # tests/scenes.py: the procedural scenes
 
-from matopt import client as mc  # noqa: E402
-from matopt.cli import report  # noqa: E402
+from matopt_client import client as mc  # noqa: E402
+from matopt_client.cli import report  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 CORNELL_XML = ROOT / "daemon" / "matoptd" / "engine" / "cornell_box.xml"

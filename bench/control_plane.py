@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import common
 from common import Result, Settings, Target
-from matopt import client as mc
+from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
 RES, SPP = 128, 4

@@ -16,7 +16,7 @@ import numpy as np
 
 import common
 from common import Result, Settings, Target
-from matopt import client as mc
+from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import QUAD_CORNERS, QUAD_IN_FRONT, quad_obj
 

@@ -18,7 +18,7 @@ import time
 
 import common
 from common import Result, Settings, Target
-from matopt.cli import report
+from matopt_client.cli import report
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import common
 import plain
 from common import Result, Settings, Target
-from matopt.cli import report
+from matopt_client.cli import report
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import PRINCIPLED

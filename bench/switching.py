@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import common
 from common import Result, Settings, Target
-from matopt import client as mc
+from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 from matoptd.scheduler import SLICE_SECONDS
 

@@ -36,7 +36,7 @@ import common
 import plain
 import thesis_scenes as ts
 from common import Result, Settings, Target
-from matopt import client as mc
+from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import exr
 

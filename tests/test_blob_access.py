@@ -264,7 +264,7 @@ def test_cli_lists_and_deletes_blobs(users, daemon, tmp_path):
     _, render = cornell(bob)  # the render is used by nothing either
 
     def matopt(*args):
-        return subprocess.run([sys.executable, "-m", "matopt.cli", "--server", daemon.address,
+        return subprocess.run([sys.executable, "-m", "matopt_client.cli", "--server", daemon.address,
                                "--token", USERS["bob"], "blob", *args],
                               capture_output=True, text=True, timeout=120)
 

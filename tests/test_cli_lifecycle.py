@@ -26,7 +26,7 @@ def own_daemon(tmp_path):
 
 def matopt(daemon, *args, check=True) -> subprocess.CompletedProcess:
     env = dict(os.environ, MATOPT_SERVER=daemon.address)
-    out = subprocess.run([sys.executable, "-m", "matopt.cli", *args], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "matopt_client.cli", *args], capture_output=True,
                          text=True, env=env, timeout=600)
     if check and out.returncode != 0:
         raise AssertionError(f"matopt {' '.join(args)} exited {out.returncode}:\n{out.stderr}")
@@ -118,7 +118,7 @@ def test_session_across_restart(own_daemon, tmp_path):
     checkpoint = int(resumed["resumedFrom"].rsplit(" ", 1)[1])
     assert 0 < checkpoint <= stopped_at
 
-    watch = subprocess.Popen([sys.executable, "-m", "matopt.cli", "--server", d.address, "job",
+    watch = subprocess.Popen([sys.executable, "-m", "matopt_client.cli", "--server", d.address, "job",
                               "watch", long_job, "--json"], stdout=subprocess.PIPE, text=True)
     first = json.loads(watch.stdout.readline())
     assert first["job"]["state"] == "JOB_STATE_RUNNING"

@@ -17,7 +17,7 @@ from pathlib import Path
 import grpc
 import pytest
 
-import matopt.client as mc
+import matopt_client.client as mc
 from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 

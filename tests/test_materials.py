@@ -62,8 +62,8 @@ def recover(stubs, files: dict[str, bytes], main: str, starts: dict[str, list[fl
 
 def export(daemon, job: str, directory):
     """What a user gets from `matopt job export --which last`."""
-    from matopt.client import connect
-    from matopt.export import export_job
+    from matopt_client.client import connect
+    from matopt_client.export import export_job
     client = connect(daemon.address)
     try:
         return export_job(client, job, directory, "last")

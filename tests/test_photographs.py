@@ -105,7 +105,7 @@ def test_mask_image_keeps_garbage_out_and_unmasked_job_is_misled(stubs, cornell,
     mask = garbage_mask(truth.shape[:2])
     (tmp_path / "photo.exr").write_bytes(exr(spoil(truth, mask)))
     (tmp_path / "photo_mask.png").write_bytes(png(mask))
-    cmd = [sys.executable, "-m", "matopt.cli", "job", "start", scene.name,
+    cmd = [sys.executable, "-m", "matopt_client.cli", "job", "start", scene.name,
            "--ref", str(tmp_path / "photo.exr"), "--mask", str(tmp_path / "photo_mask.png"),
            "--iterations", "60", "--spp", "4", "--min-error", "0", "--seed", "3",
            "--wait", "--json"]
@@ -164,7 +164,7 @@ def test_fit_exposure_recovers_gain_tint_and_walls(stubs, cornell, cli_env):
     # about the exposure (walls at grey 0.5 instead of their colours make them off by ~20%).
     assert np.array(history[0].gains[0].rgb) == pytest.approx(factors, rel=0.3)
     assert list(history[result.iteration].gains[0].rgb) == list(gain.rgb)
-    shown = subprocess.run([sys.executable, "-m", "matopt.cli", "job", "result", done.name,
+    shown = subprocess.run([sys.executable, "-m", "matopt_client.cli", "job", "result", done.name,
                             "--which", "last"], env=cli_env, capture_output=True, text=True,
                            timeout=120)
     assert shown.returncode == 0, shown.stderr

@@ -23,19 +23,19 @@ import pytest
 pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed (pip install matopt-mitsuba[qt])")
 pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
 
-from matopt.qt import pyside_check  # noqa: E402
+from matopt_client.qt import pyside_check  # noqa: E402
 
 if pyside_check.none_refcount_bug():
     pytest.skip(pyside_check.problem() or "broken PySide6", allow_module_level=True)
 
 from PySide6.QtCore import QSettings, QTimer  # noqa: E402
 
-from matopt import client as mc  # noqa: E402
-from matopt.qt.app import MainWindow  # noqa: E402
-from matopt.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
-from matopt.qt.jobs_list import JobsList  # noqa: E402
-from matopt.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
-from matopt.qt.scene_control import parse_overrides  # noqa: E402
+from matopt_client import client as mc  # noqa: E402
+from matopt_client.qt.app import MainWindow  # noqa: E402
+from matopt_client.qt.connection import ConnectionSettings, SettingsStore  # noqa: E402
+from matopt_client.qt.jobs_list import JobsList  # noqa: E402
+from matopt_client.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
+from matopt_client.qt.scene_control import parse_overrides  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 from conftest import TOKENS, Daemon, token_file  # noqa: E402
@@ -601,8 +601,8 @@ def test_qt_client_needs_neither_mitsuba_nor_drjit_nor_the_daemon():
     code = ("import sys\n"
             "for m in ('mitsuba', 'drjit', 'matoptd'):\n"
             "    sys.modules[m] = None\n"
-            "import matopt.qt.app\n"
-            "from matopt.qt.app import main\n"
+            "import matopt_client.qt.app\n"
+            "from matopt_client.qt.app import main\n"
             "sys.argv = ['matopt-qt', '--help']\n"
             "main()\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

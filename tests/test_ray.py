@@ -104,7 +104,7 @@ def test_workers_show_their_node_device_and_state(service, cluster):
     ids = {n.node_id for n in cluster.worker_nodes}
     assert {w.node for w in shown} == ids  # one worker on each GPU node, none on the head
     assert all(w.variant == "llvm_ad_rgb" and w.host and w.pid for w in shown)
-    out = subprocess.run([sys.executable, "-m", "matopt.cli", "--server", service[0].address,
+    out = subprocess.run([sys.executable, "-m", "matopt_client.cli", "--server", service[0].address,
                           "--token", TOKENS["alice"], "info"], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     for w in shown:
@@ -176,7 +176,7 @@ def test_ray_local_runs_the_demo(tmp_path):
     d = Daemon(tmp_path / "data", None, "--ray", "local", "--variant", "llvm_ad_rgb").start()
     try:
         out = subprocess.run(
-            [sys.executable, "-m", "matopt.cli", "demo", "--server", d.address,
+            [sys.executable, "-m", "matopt_client.cli", "demo", "--server", d.address,
              "--resolution", "32", "--iterations", "40", "--out", str(tmp_path / "demo")],
             capture_output=True, text=True, timeout=600)
         assert out.returncode == 0, out.stdout + out.stderr

@@ -29,7 +29,7 @@ def matopt(address: str, *args, token: str | None = None) -> subprocess.Complete
     env.pop("MATOPT_TOKEN", None)
     if token:
         env["MATOPT_TOKEN"] = token
-    return subprocess.run([sys.executable, "-m", "matopt.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "matopt_client.cli", *args], capture_output=True,
                           text=True, env=env, timeout=300)
 
 

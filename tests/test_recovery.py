@@ -29,7 +29,7 @@ WALLS = {
 def test_demo_recovers_the_wall_colours_at_64px(daemon, tmp_path):
     """`matopt demo` against a running daemon: grey walls back to their colours within 0.03."""
     out = tmp_path / "demo"
-    run = subprocess.run([sys.executable, "-m", "matopt.cli", "--server", daemon.address, "demo",
+    run = subprocess.run([sys.executable, "-m", "matopt_client.cli", "--server", daemon.address, "demo",
                           "--resolution", "64", "--out", str(out)],
                          capture_output=True, text=True, timeout=600,
                          env=dict(os.environ, MATOPT_TOKEN=""))

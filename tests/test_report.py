@@ -23,7 +23,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 def matopt(daemon, *args, env_extra=None) -> subprocess.CompletedProcess:
     env = dict(os.environ, MATOPT_SERVER=daemon.address, **(env_extra or {}))
     env.pop("MATOPT_TOKEN", None)
-    return subprocess.run([sys.executable, "-m", "matopt.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "matopt_client.cli", *args], capture_output=True,
                           text=True, env=env, timeout=120)
 
 

@@ -68,7 +68,7 @@ def project(root: Path, **xml) -> Path:
 def matopt(daemon, cwd: Path, *args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, MATOPT_SERVER=daemon.address)
     env.pop("MATOPT_TOKEN", None)
-    return subprocess.run([sys.executable, "-m", "matopt.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "matopt_client.cli", *args], capture_output=True,
                           text=True, env=env, cwd=cwd, timeout=600)
 
 

@@ -112,7 +112,7 @@ def test_tls_with_the_deploy_certificates(tmp_path):
     d = Daemon(tmp_path / "data", tokens, "--tls-cert", str(certs / "server.pem"),
                "--tls-key", str(certs / "server.key")).start()
     try:
-        base = [sys.executable, "-m", "matopt.cli", "--server", d.address,
+        base = [sys.executable, "-m", "matopt_client.cli", "--server", d.address,
                 "--token", TOKENS["alice"]]
         ok = subprocess.run(base + ["--tls-ca", str(certs / "ca.pem"), "info", "--json"],
                             capture_output=True, text=True, timeout=120)

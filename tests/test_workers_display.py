@@ -17,9 +17,9 @@ import grpc
 import pytest
 from click.testing import CliRunner
 
-import matopt.cli as cli_module
-from matopt import client as mc
-from matopt import workers as wk
+import matopt_client.cli as cli_module
+from matopt_client import client as mc
+from matopt_client import workers as wk
 from matopt_api.v1 import matopt_pb2 as pb
 
 MiB, GiB = 1024**2, 1024**3
@@ -188,7 +188,7 @@ def test_matopt_info_from_a_daemon_without_workers_says_nothing_about_them(monke
 pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed")
 pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
 
-from matopt.qt import pyside_check  # noqa: E402
+from matopt_client.qt import pyside_check  # noqa: E402
 
 QT_BROKEN = pyside_check.none_refcount_bug()
 needs_qt = pytest.mark.skipif(QT_BROKEN, reason=pyside_check.problem() or "broken PySide6")
@@ -204,7 +204,7 @@ def plain(html_text: str) -> str:
 
 @needs_qt
 def test_status_label_and_tooltip(qtbot):
-    from matopt.qt.workers_label import WorkersLabel
+    from matopt_client.qt.workers_label import WorkersLabel
 
     label = WorkersLabel()
     qtbot.addWidget(label)
@@ -286,9 +286,9 @@ def test_window_refreshes_workers_and_a_lost_daemon_is_one_banner(qtbot, tmp_pat
                                                                   monkeypatch, caplog):
     from PySide6.QtCore import QSettings
 
-    from matopt.qt import connection as qt_connection
-    from matopt.qt.app import MainWindow
-    from matopt.qt.connection import ConnectionSettings, SettingsStore
+    from matopt_client.qt import connection as qt_connection
+    from matopt_client.qt.app import MainWindow
+    from matopt_client.qt.connection import ConnectionSettings, SettingsStore
 
     daemon = FakeDaemon(server_info(busy_cpu_worker(), idle_cpu_worker()))
     monkeypatch.setattr(qt_connection, "_connect", daemon.client)
@@ -314,7 +314,7 @@ def test_window_refreshes_workers_and_a_lost_daemon_is_one_banner(qtbot, tmp_pat
 
         # The daemon goes away: one banner, one log line, however many retries fail; the
         # label hides instead of showing stale states.
-        caplog.set_level(logging.WARNING, logger="matopt.qt.connection")
+        caplog.set_level(logging.WARNING, logger="matopt_client.qt.connection")
         with daemon.lock:
             daemon.down = True
         qtbot.waitUntil(lambda: window.connection.lost_message is not None, timeout=5000)

@@ -13,10 +13,10 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # the Qt form, in one tes
 import pytest
 from click.testing import CliRunner
 
-from matopt import workflow
-from matopt.cli import cli
-from matopt.cli import job as cli_job
-from matopt.cli.progress import JobProgress
+from matopt_client import workflow
+from matopt_client.cli import cli
+from matopt_client.cli import job as cli_job
+from matopt_client.cli.progress import JobProgress
 from matopt_api.v1 import matopt_pb2 as pb
 
 INFO = pb.ServerInfo(losses=["mse", "dual_buffer", "mae", "newer_loss"],
@@ -106,10 +106,10 @@ def cli_spec(monkeypatch, *args: str) -> tuple[pb.JobSpec, str]:
 def test_cli_and_qt_build_the_same_spec_from_the_same_settings(monkeypatch, request):
     pytest.importorskip("PySide6.QtWidgets", reason="PySide6 is not installed")
     pytest.importorskip("pytestqt", reason="pytest-qt is not installed")
-    from matopt.qt import pyside_check
+    from matopt_client.qt import pyside_check
     if pyside_check.none_refcount_bug():
         pytest.skip(pyside_check.problem() or "broken PySide6")
-    from matopt.qt.job_settings import JobSettingsForm
+    from matopt_client.qt.job_settings import JobSettingsForm
 
     qtbot = request.getfixturevalue("qtbot")
 

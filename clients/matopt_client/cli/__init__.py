@@ -1,0 +1,133 @@
+"""``matopt``: the command line client of matoptd.
+
+Every failure ends in one line on stderr (``matopt: error: NOT_FOUND: job 'jobs/x' not found``)
+and a non-zero exit status, never a traceback: 1 for errors (from the daemon or local), 2 for
+a wrong command line, 130 for Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+# gRPC's C core logs connection failures to stderr on its own; the CLI reports them itself,
+# in one line. Must be set before grpc is first imported.
+os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
+
+import click  # noqa: E402
+import grpc  # noqa: E402
+
+from matopt_client import __version__, workers
+from matopt_api.bundle import BundleError
+from matopt_client.client import ClientError, error_message
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_client.cli.output import emit_json, fields, json_option
+from matopt_client.cli.session import Group, Settings, connected, root_options
+
+
+def _fail(message: str, code: int) -> int:
+    one_line = " ".join(message.split())  # a daemon's error may carry a multi-line traceback
+    click.echo(f"matopt: error: {one_line}", err=True)
+    return code
+
+
+def _usage_message(exc: click.UsageError) -> str:
+    text = exc.format_message()
+    if exc.ctx is not None:
+        text += f" (see '{exc.ctx.command_path} --help')"
+    return text
+
+
+class Main(Group):
+    """The ``matopt`` group; its :meth:`main` turns every exception into one line and a status.
+
+    Doing it here, rather than around the call in :func:`main`, also covers callers that run
+    the group directly (click's test runner, ``python -m``).
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        try:
+            result = super().main(args, prog_name or "matopt", complete_var,
+                                  standalone_mode=False, **extra)
+            code = result if isinstance(result, int) else 0
+        except click.UsageError as exc:
+            code = _fail(_usage_message(exc), exc.exit_code)
+        except click.ClickException as exc:
+            code = _fail(exc.format_message(), exc.exit_code)
+        except click.Abort:
+            code = _fail("interrupted", 130)
+        except KeyboardInterrupt:
+            code = _fail("interrupted", 130)
+        except grpc.RpcError as exc:
+            code = _fail(error_message(exc), 1)
+        except (ClientError, BundleError) as exc:
+            code = _fail(str(exc), 1)
+        except OSError as exc:
+            where = f"'{exc.filename}': " if exc.filename else ""
+            code = _fail(f"{where}{exc.strerror or exc}", 1)
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+
+@click.group("matopt", cls=Main, context_settings={"help_option_names": ["-h", "--help"]})
+@root_options
+@click.version_option(__version__, prog_name="matopt")
+@click.pass_context
+def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) -> None:
+    """Material reconstruction with matoptd: load scenes, run and follow optimization jobs.
+
+    Connection options go before the command (matopt --server H:P job list) or after it.
+    SCENE and JOB are full names (scenes/abc, jobs/abc) or bare ids (abc).
+    """
+    ctx.obj = Settings(server=server, token=token or None, tls_ca=tls_ca or None)
+
+
+@cli.command()
+@json_option
+def info(as_json: bool) -> None:
+    """Show what the daemon runs.
+
+    Version, Mitsuba variant, device, the user your token belongs to, the losses, schedules
+    and sensor modes jobs accept, integrators, and its renderer workers: state, device,
+    process, memory against its limit, jobs (only yours by name) and restarts.
+    """
+    client = connected()
+    info = client.info or client.server.GetServerInfo(pb.GetServerInfoRequest())
+    if as_json:
+        emit_json(info)
+        return
+    fields({
+        "server": client.target,
+        "version": info.version,
+        "variant": info.variant,
+        "device": info.device,
+        "user": info.user,
+        # Lists an older daemon does not announce are left out rather than shown empty.
+        "losses": ", ".join(info.losses) or None,
+        "schedules": ", ".join(info.schedules) or None,
+        "sensor modes": ", ".join(info.sensor_modes) or None,
+        "integrators": ", ".join(info.integrators) or None,
+        "capabilities": ", ".join(info.capabilities) or None,
+        # A daemon older than the workers list reports none: say nothing rather than "none".
+        "workers": workers.summary(info.workers) if info.workers else None,
+    })
+    for line in workers.worker_lines(info.workers, info.variant):
+        click.echo(f"  {line}")
+
+
+def _register() -> None:
+    from matopt_client.cli import blob, demo, job, scene
+
+    cli.add_command(scene.scene)
+    cli.add_command(job.job)
+    cli.add_command(blob.blob)
+    cli.add_command(demo.demo)
+
+
+_register()
+
+
+def main() -> None:
+    """The console script ``matopt``."""
+    cli.main(prog_name="matopt")

@@ -1,0 +1,180 @@
+"""Following a running job on the terminal, and turning how it ended into an exit status.
+
+Shared by ``job start --wait``, ``job watch`` and ``demo`` so that all three report progress and
+failures the same way: a job that FAILED or was CANCELLED makes the command exit non-zero.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from typing import Callable
+
+import click
+import grpc
+
+from matopt_client import client as mc
+from matopt_client import workflow
+from matopt_client.cli.output import best, note, number, parameter_error
+from matopt_api.v1 import matopt_pb2 as pb
+
+BAR_WIDTH = 24
+MIN_BAR_WIDTH = 8  # narrower, a bar shows too little to be worth its columns
+
+
+class Interrupted(click.ClickException):
+    """Ctrl-C while following a job: the job itself keeps running on the daemon."""
+
+    exit_code = 130
+
+
+class JobProgress:
+    """Shows a job's progress on stderr while it runs.
+
+    On a terminal one line rewrites itself (bar, iteration/total, loss), fitted to the
+    terminal's width: a wrapped line could not be rewritten and would scroll a new line per
+    update. In a log (not a terminal), a line per state change and per tenth of the
+    iterations, each a complete line, so CI logs stay short but show movement. The best loss
+    is the daemon's (Job.best_loss), never recomputed here.
+    """
+
+    def __init__(self, interactive: bool | None = None) -> None:
+        self.interactive = sys.stderr.isatty() if interactive is None else interactive
+        self.name = ""
+        self.state = ""
+        self.total = 0
+        self.iteration = 0
+        self.loss: float | None = None
+        self.best: float | None = None
+        self.seconds = 0.0
+        self._width = 0
+        self._last_tenth = -1
+
+    def __call__(self, event: pb.JobEvent) -> None:
+        if event.HasField("job"):
+            job = event.job
+            changed = mc.state_name(job.state) != self.state
+            self.name, self.state = job.name, mc.state_name(job.state)
+            self.total, self.iteration = job.spec.iterations, job.iteration
+            self.seconds = job.elapsed_seconds
+            if job.iteration:
+                self.loss = job.loss
+            best = workflow.best(job)
+            if best is not None:
+                self.best = best[1]
+            if changed and not self.interactive:
+                self._last_tenth = self._tenth()
+                note(self.line())
+        else:
+            record = event.iteration
+            # Records are numbered from 0; after record i, i + 1 iterations are complete.
+            self.iteration = record.iteration + 1
+            self.loss, self.seconds = record.loss, record.seconds
+            tenth = self._tenth()
+            if not self.interactive and tenth != self._last_tenth:
+                self._last_tenth = tenth
+                note(self.line())
+        if self.interactive:
+            # One column short of the width: a line filling the last column wraps on some
+            # terminals, and the next carriage return would then rewrite the wrong line.
+            width = shutil.get_terminal_size().columns - 1
+            text = self.line(width)
+            click.echo("\r" + text.ljust(min(self._width, width)), nl=False, err=True)
+            self._width = len(text)
+
+    def _tenth(self) -> int:
+        return self.iteration * 10 // self.total if self.total else 0
+
+    def line(self, width: int | None = None) -> str:
+        """The progress in at most ``width`` characters (None: as long as it takes).
+
+        The bar shrinks first, down to MIN_BAR_WIDTH, then goes; what still does not fit is
+        cut at the end, marked with '…'.
+        """
+        before, after = [self.name, self.state], [f"{self.iteration}/{self.total}"]
+        if self.loss is not None:
+            after.append(f"loss {number(self.loss)}")
+        if self.best is not None:
+            after.append(f"best {number(self.best)}")
+        after.append(f"{self.seconds:.1f} s")
+        text = "  ".join(before + after)
+        bar_width = BAR_WIDTH if width is None else min(BAR_WIDTH, width - len(text) - 4)
+        if self.total and bar_width >= MIN_BAR_WIDTH:
+            done = min(self.iteration, self.total) * bar_width // self.total
+            text = "  ".join(before + ["[" + "#" * done + "." * (bar_width - done) + "]"]
+                             + after)
+        if width is not None and len(text) > width:
+            text = text[:max(width - 1, 0)] + "…"
+        return text
+
+    def close(self) -> None:
+        if self.interactive and self._width:
+            click.echo(err=True)
+            self._width = 0
+
+
+def describe(event: pb.JobEvent, total: int = 0) -> str:
+    """One line per event, for ``job watch``."""
+    if event.HasField("job"):
+        job = event.job
+        text = f"{job.name} {mc.state_name(job.state)} {job.iteration}/{job.spec.iterations}"
+        if job.iteration:
+            text += f" loss {number(job.loss)}"
+        if best(job):
+            text += f", best {best(job)}"
+        if job.error:
+            text += f": {job.error}"
+        phase = next((n for n in job.notes if n.startswith("end phase: ")), None)
+        if phase and job.state == pb.JOB_STATE_RUNNING:  # e.g. rendering result images 3/8
+            text += f" ({phase})"
+        return text
+    record = event.iteration
+    of = f"/{total}" if total else ""
+    text = f"iteration {record.iteration}{of} loss {number(record.loss)} ({record.seconds:.2f} s)"
+    for e in record.errors:  # with ground truth
+        text += f"; {e.key}: {parameter_error(e)}"
+    for g in record.gains:  # with --fit-exposure
+        text += f", gain {workflow.gain_reference(g)} " + "/".join(f"{v:.3g}" for v in g.rgb)
+    return text
+
+
+def describe_state(job: pb.Job) -> str:
+    """What of a job the reader of ``job watch`` follows besides iterations: its state, its
+    end phase and its error."""
+    phase = next((n for n in job.notes if n.startswith("end phase: ")), "")
+    return f"{mc.state_name(job.state)} {phase} {job.error}"
+
+
+def follow(client: mc.Client, name: str, on_event: Callable[[pb.JobEvent], None]) -> pb.Job:
+    """Waits for the job to end; says what became of the job when the waiting stops early.
+
+    Ctrl-C leaves the job running; a lost connection (the daemon stopped or restarted) leaves
+    it running or INTERRUPTED. Either way the user learns how to pick it up again.
+    """
+    try:
+        return mc.wait(client, name, on_event)
+    except KeyboardInterrupt:
+        raise Interrupted(f"interrupted; {name} keeps running on the daemon "
+                          f"('matopt job cancel {name}' stops it)") from None
+    except grpc.RpcError as exc:
+        if exc.code() != grpc.StatusCode.UNAVAILABLE:
+            raise
+        raise click.ClickException(
+            f"lost the connection to matoptd while following {name} ({mc.error_message(exc)}); "
+            f"'matopt job status {name}' shows what became of it") from None
+
+
+def outcome(job: pb.Job) -> None:
+    """Reports how the job ended; raises (exit status 1) unless it SUCCEEDED."""
+    state = mc.state_name(job.state)
+    if job.state == pb.JOB_STATE_SUCCEEDED:
+        reason = f" ({job.stop_reason})" if job.stop_reason else ""
+        lowest = f"; best loss {best(job)}" if best(job) else ""
+        note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}{lowest}")
+        return
+    if job.state == pb.JOB_STATE_FAILED:
+        raise click.ClickException(f"job '{job.name}' FAILED: {job.error or 'no reason given'}")
+    if job.state == pb.JOB_STATE_CANCELLED:
+        raise click.ClickException(f"job '{job.name}' was cancelled")
+    hint = f" ('matopt job resume {job.name}' continues it)" if job.state == pb.JOB_STATE_INTERRUPTED else ""
+    raise click.ClickException(f"job '{job.name}' stopped in state {state}{hint}")
