@@ -20,7 +20,7 @@ import pytest
 
 from matopt_api import costs
 
-from scenes import camera, create_scene, exr, png
+from scenes import camera, create_scene, exr, grid_volume, png, vol
 
 RED = (0.8, 0.1, 0.1)
 QUAD_PLY = (b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
@@ -168,6 +168,25 @@ def test_the_cli_refuses_a_path_leaving_the_root(daemon, tmp_path):
 
 
 # -- large parameters --------------------------------------------------------------------------
+
+def test_set_on_a_default_naming_a_file_loads_that_file(daemon, tmp_path):
+    """``--set grid=start.vol`` where ``<default name="grid">`` names the medium's grid: that
+    file is uploaded and loaded, the XML's own is not needed."""
+    xml = grid_volume(16).replace('value="albedo.vol"', 'value="$grid"').replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><default name="grid" value="albedo.vol"/>')
+    (tmp_path / "scene.xml").write_text(xml)
+    (tmp_path / "albedo.vol").write_bytes(vol(np.full((2, 2, 2, 3), 0.5)))
+    (tmp_path / "start.vol").write_bytes(vol(np.full((2, 2, 2, 3), 0.8)))
+    key = "box.interior_medium.albedo.data"
+
+    def albedo(*load_args: str) -> list[float]:
+        scene = ok(matopt(daemon, tmp_path, "scene", "load", "scene.xml", *load_args)).strip()
+        listed = json.loads(ok(matopt(daemon, tmp_path, "scene", "params", scene, "--json")))
+        return next(p["value"] for p in listed["parameters"] if p["key"] == key)
+
+    assert albedo() == pytest.approx([0.5] * 24)
+    assert albedo("--set", "grid=start.vol") == pytest.approx([0.8] * 24)
+
 
 def test_the_cost_of_a_large_parameter(tmp_path):
     """The 4800x7200 RGB texture of the report: 103,680,000 values, 16 bytes each on the

@@ -247,7 +247,9 @@ def closure(main: str, read: Callable[[str], bytes | str | None],
 
     With ``rewrite``, every XML read is left in it (a tree already there, the main XML's, is
     used instead of reading the file) with each file name written out as resolved here: '/'
-    separators and no ``$``. Mitsuba then opens the files these rules name.
+    separators and no ``$``. Mitsuba then opens the files these rules name. It is to be loaded
+    with these ``overrides``, which its ``<default>``s then refer to (see
+    ``_overrides_referred``).
 
     Raises ``BundleError`` for a file reference that leaves the bundle and anything Mitsuba
     would read differently from these rules. A reference to a missing file is returned (at the
@@ -360,7 +362,26 @@ def closure(main: str, read: Callable[[str], bytes | str | None],
     except BundleError:
         if not missing_include:
             raise
+    if rewrite is not None:
+        _overrides_referred(root, {k for k, v in params.items()
+                                   if v is not None and k in (overrides or {})})
     return found
+
+
+def _overrides_referred(root: ET.Element, names: set[str]) -> None:
+    """Sets each named parameter's ``<default>`` to ``$name``.
+
+    Mitsuba refuses a parameter it is passed but never substitutes ("Found unused
+    parameters"), and a file name written out no longer says ``$name``: an override naming
+    a file (``--set grid=start.vol``) would be refused. Its own ``<default>`` now refers to
+    it: Mitsuba substitutes the override there, then skips the declaration, as for any name
+    it was passed.
+    """
+    for elem in root.iter("default"):
+        name = elem.get("name")
+        if name in names:
+            elem.set("value", f"${name}")
+            names.discard(name)  # only the first declaration counts
 
 
 def _read_xml(path: str, read: Callable[[str], bytes | str | None], what: str) -> ET.Element:
