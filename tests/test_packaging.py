@@ -31,9 +31,12 @@ def dist(tmp_path_factory):
 def test_wheel_and_sdist_carry_the_contract(dist):
     wheel = next(dist.glob(f"{DISTRIBUTION}-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
-    for module in ("matopt/cli/__init__.py", "matoptd/main.py", "matopt_api/v1/matopt_pb2.py",
-                   "matopt_api/v1/matopt.proto", "matopt_api/enums.py"):
+    for module in ("matopt_client/cli/__init__.py", "matoptd/console.py",
+                   "matopt_api/v1/matopt_pb2.py", "matopt_api/v1/matopt.proto",
+                   "matopt_api/enums.py"):
         assert module in names, module
+    # `matopt/` is the package of the index's project `matopt`: no file of ours may be there.
+    assert not [n for n in names if n.startswith("matopt/")]
     metadata = zipfile.ZipFile(wheel).read(
         next(n for n in names if n.endswith("/METADATA"))).decode()
     assert f"Name: {DISTRIBUTION.replace('_', '-')}" in metadata
@@ -58,6 +61,14 @@ def test_client_wheel_alone_runs_a_job(dist, tmp_path):
     helped = subprocess.run([str(env_dir / "bin" / "matopt"), "--help"], capture_output=True,
                             text=True, timeout=120)
     assert helped.returncode == 0 and "scene" in helped.stdout and "job" in helped.stdout
+    # The daemon's command is there too, and says in one line what it lacks.
+    refused = subprocess.run([str(env_dir / "bin" / "matoptd")], capture_output=True,
+                             text=True, timeout=120)
+    assert refused.returncode == 2, refused.stderr
+    assert refused.stderr.count("\n") == 1 and "Traceback" not in refused.stderr
+    assert refused.stderr.startswith("matoptd: error: this install has the clients only "
+                                     "(missing mitsuba, drjit, ")
+    assert refused.stderr.rstrip().endswith('pip install "matopt-mitsuba[daemon]"')
 
     d = Daemon(tmp_path / "data", None).start()
     try:

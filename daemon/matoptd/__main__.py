@@ -1,3 +1,3 @@
-from .main import main
+from .console import main
 
 main()
