@@ -65,6 +65,10 @@ def test_session_across_restart(own_daemon, tmp_path):
                   "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--min-error", "0",
                   "--wait", "--truth", f"{KEY}=0.2,0.4,0.6")
     job = done.stdout.strip().splitlines()[0]
+    # What the daemon applied, its defaults included; how the job ended, each word once.
+    applied = next(line for line in done.stderr.splitlines() if line.startswith(f"{job}: "))
+    assert "loss mse, schedule cosine, " in applied and "60 iterations at 16 spp" in applied
+    assert f"{job} SUCCEEDED after 60 iterations; best loss " in done.stderr
     status = as_json(d, "job", "status", job)
     assert status["state"] == "JOB_STATE_SUCCEEDED" and status["iteration"] == 60
     errors = [r["errors"][0]["maxAbs"] for r in as_json(d, "job", "history", job)["iterations"]]
@@ -93,7 +97,8 @@ def test_session_across_restart(own_daemon, tmp_path):
                       "--init", f"{KEY}=0.8,0.8,0.8", "--min-error", "0",
                       "--iterations", "100000").stdout.strip()
     wait_for(d, long_job, ("JOB_STATE_RUNNING",))
-    matopt(d, "job", "pause", long_job)
+    # The state the request leads to, whether or not an iteration was under way.
+    assert "PAUSED" in matopt(d, "job", "pause", long_job).stdout
     paused = wait_for(d, long_job, ("JOB_STATE_PAUSED",))
     matopt(d, "job", "resume", long_job)
     wait_for(d, long_job, ("JOB_STATE_RUNNING",))

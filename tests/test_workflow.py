@@ -16,7 +16,6 @@ from click.testing import CliRunner
 from matopt_client import workflow
 from matopt_client.cli import cli
 from matopt_client.cli import job as cli_job
-from matopt_client.cli.progress import JobProgress
 from matopt_api.v1 import matopt_pb2 as pb
 
 INFO = pb.ServerInfo(losses=["mse", "dual_buffer", "mae", "newer_loss"],
@@ -119,12 +118,24 @@ def test_cli_and_qt_build_the_same_spec_from_the_same_settings(monkeypatch, requ
     form = JobSettingsForm()
     qtbot.addWidget(form)
     form.set_choices(workflow.choices(INFO))
-    assert [form.loss.itemData(i) for i in range(form.loss.count())] == list(INFO.losses)
+    assert [form.loss.itemData(i) for i in range(form.loss.count())] == [None, *INFO.losses]
     form.set_values(loss="dual_buffer", schedule="constant", sensor_mode="step per sensor",
                     iterations=7, spp=3, min_error=0.01, clamp=False)
     qt = workflow.build_spec("scenes/s", [pb.ParameterSpec(key="k")], form.values())
     qt.references.extend(workflow.upload_references(None, [workflow.ReferenceFile("blobs/r")]))
     assert spec == qt and spec.loss == pb.LOSS_DUAL_BUFFER and spec.spp == 3
+
+    # Neither client holds defaults of its own: what is left alone is not sent.
+    untouched, _ = cli_spec(monkeypatch)
+    fresh = JobSettingsForm()
+    qtbot.addWidget(fresh)
+    fresh.set_choices(workflow.choices(INFO))
+    assert fresh.iterations.text() == fresh.spp.text() == "daemon default"
+    qt = workflow.build_spec("scenes/s", [pb.ParameterSpec(key="k")], fresh.values())
+    qt.references.extend(workflow.upload_references(None, [workflow.ReferenceFile("blobs/r")]))
+    assert untouched == qt
+    assert not any(qt.HasField(f) for f in ("iterations", "spp", "min_error", "learning_rate"))
+    assert (qt.loss, qt.schedule, qt.sensor_mode) == (0, 0, 0)
 
 
 def test_cli_refuses_a_loss_the_daemon_does_not_offer(monkeypatch):
@@ -138,44 +149,6 @@ def running(iteration: int, total: int = 10, best: int = -1, name: str = "jobs/x
     return pb.Job(name=name, state=pb.JOB_STATE_RUNNING, iteration=iteration,
                   spec=pb.JobSpec(iterations=total), loss=0.5, best_iteration=best,
                   best_loss=0.25, elapsed_seconds=1.5)
-
-
-def test_progress_line_fits_60_columns():
-    progress = JobProgress(interactive=False)
-    progress(pb.JobEvent(job=running(3, 100, best=2,
-                                     name="jobs/0123456789abcdef0123456789abcdef")))
-    wide, narrow = progress.line(), progress.line(60)
-    assert len(wide) > 60 and "[" in wide
-    assert len(narrow) <= 60 and narrow.startswith("jobs/0123456789abcdef")
-    assert len(progress.line(20)) <= 20
-
-
-def test_progress_on_a_narrow_terminal_rewrites_one_line(monkeypatch, capsys):
-    monkeypatch.setattr(shutil, "get_terminal_size", lambda *a: os.terminal_size((60, 24)))
-    progress = JobProgress(interactive=True)
-    progress(pb.JobEvent(job=running(0, name="jobs/0123456789abcdef0123456789abcdef")))
-    for i in range(10):
-        progress(pb.JobEvent(iteration=pb.IterationRecord(iteration=i, loss=0.1, seconds=i)))
-    err = capsys.readouterr().err
-    assert "\n" not in err
-    assert all(len(part) < 60 for part in err.split("\r"))
-
-
-def test_progress_in_a_log_prints_one_line_per_update(capsys):
-    progress = JobProgress(interactive=False)
-    progress(pb.JobEvent(job=running(0)))
-    for i in range(10):
-        progress(pb.JobEvent(iteration=pb.IterationRecord(iteration=i, loss=0.1, seconds=i)))
-    done = running(10, best=6)  # the daemon's best comes with the job
-    done.state = pb.JOB_STATE_SUCCEEDED
-    progress(pb.JobEvent(job=done))
-    progress.close()
-    lines = capsys.readouterr().err.split("\n")
-    assert "\r" not in "".join(lines) and lines[-1] == ""
-    assert len(lines[:-1]) == 12  # the start, one per tenth of 10 iterations, the end
-    assert lines[-2].endswith("SUCCEEDED  [########################]  10/10  loss 0.5  "
-                              "best 0.25  1.5 s")
-    assert all("best" not in line for line in lines[:-2])  # not computed from the records
 
 
 def test_job_status_prints_sensor_indices(monkeypatch):

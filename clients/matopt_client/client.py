@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import posixpath
+import re
 import struct
 import uuid
 from dataclasses import dataclass, field
@@ -25,6 +26,9 @@ from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 from . import scene_files
 
+DEFAULT_PORT = 50051  # matoptd's, for an address given without one
+DEFAULT_SERVER = f"127.0.0.1:{DEFAULT_PORT}"  # where matoptd listens unless told otherwise
+GRPC_SCHEMES = ("unix:", "unix-abstract:", "vsock:", "dns:", "ipv4:", "ipv6:")
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 CHUNK_BYTES = 1024 * 1024  # the API's chunk limit for blob streams
 PROBE_TIMEOUT_S = 5.0  # the first call: long enough for a remote daemon, short enough to wait out
@@ -117,9 +121,23 @@ class _BearerToken(
         return continuation(self._details(details), request_iterator)
 
 
+def with_port(server: str) -> str:
+    """``gpu-box`` -> ``gpu-box:50051``: an address without a port gets matoptd's (gRPC's
+    own default would be 443). Addresses with a scheme (``unix:/run/m.sock``, ``dns:///h``)
+    are gRPC's to read and stay as given."""
+    if server.startswith(GRPC_SCHEMES):
+        return server
+    if server.startswith("["):  # [::1] or [::1]:50051
+        return server if re.search(r"\]:\d+$", server) else f"{server}:{DEFAULT_PORT}"
+    if server.count(":") > 1:  # a bare IPv6 address
+        return f"[{server}]:{DEFAULT_PORT}"
+    return server if ":" in server else f"{server}:{DEFAULT_PORT}"
+
+
 def connect(server: str, token: str | None = None, tls_ca: str | None = None, *,
             probe_timeout: float | None = PROBE_TIMEOUT_S) -> Client:
-    """Opens a channel to matoptd at ``server`` ("host:port") and checks that it answers.
+    """Opens a channel to matoptd at ``server`` ("host:port"; without a port, matoptd's
+    50051) and checks that it answers.
 
     gRPC connects lazily and a call to a dead address fails with an opaque UNAVAILABLE, so the
     first call (GetServerInfo, kept in ``Client.info``) runs here under a short deadline and a
@@ -127,6 +145,7 @@ def connect(server: str, token: str | None = None, tls_ca: str | None = None, *,
     for a caller (a GUI) that must not block. Errors the daemon returns (UNAUTHENTICATED, ...)
     propagate as ``grpc.RpcError``.
     """
+    server = with_port(server)
     options = [
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
         ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),

@@ -257,22 +257,45 @@ def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: Job
     return spec
 
 
+def choice_name(enum, value: int) -> str | None:
+    """``dual_buffer`` for LOSS_DUAL_BUFFER, as ``--loss`` and ServerInfo spell it; None for
+    a value left unset."""
+    return enums.short_name(enum, value).lower() if value else None
+
+
 def settings_of(spec: pb.JobSpec) -> JobSettings:
     """The settings of a (filled-in) spec: what a client shows of an earlier job."""
     def optional(name: str):
         return getattr(spec, name) if spec.HasField(name) else None
 
-    def enum_name(enum, value: int) -> str | None:
-        return enums.short_name(enum, value).lower() if value else None
-
     return JobSettings(
-        loss=enum_name(pb.Loss, spec.loss), schedule=enum_name(pb.Schedule, spec.schedule),
-        sensor_mode=enum_name(pb.SensorMode, spec.sensor_mode),
+        loss=choice_name(pb.Loss, spec.loss), schedule=choice_name(pb.Schedule, spec.schedule),
+        sensor_mode=choice_name(pb.SensorMode, spec.sensor_mode),
         iterations=optional("iterations"), spp=optional("spp"),
         min_error=optional("min_error"), seed=spec.seed or None,
         learning_rate=optional("learning_rate"), clamp=spec.clamp,
         film_height=spec.film_height or None, image_error_every=spec.image_error_every or None,
         fit_exposure=spec.fit_exposure)
+
+
+def applied(spec: pb.JobSpec) -> str:
+    """The settings a job runs with, as the daemon filled them in (Job.spec), in one line:
+    ``loss mse, schedule cosine, 100 iterations at 16 spp, min error 0, seed 0``. The
+    daemon's answer is where a client learns its defaults; none are kept here."""
+    s = settings_of(spec)
+    words = [f"{name.replace('_', ' ')} {value}" for name, value in
+             (("loss", s.loss), ("schedule", s.schedule), ("sensors", s.sensor_mode))
+             if value]
+    if s.iterations is not None:
+        words.append(f"{s.iterations} iterations" + (f" at {s.spp} spp" if s.spp else ""))
+    if s.min_error is not None:
+        words.append(f"min error {number(s.min_error)}")
+    if s.learning_rate is not None:
+        words.append(f"learning rate {number(s.learning_rate)}")
+    words += [f"seed {spec.seed}"] + (["clamped to [0, 1]"] if s.clamp else []) \
+        + ([f"film height {s.film_height} px"] if s.film_height else []) \
+        + (["exposure fitted"] if s.fit_exposure else [])
+    return ", ".join(words)
 
 
 def start_job(client: mc.Client, spec: pb.JobSpec, refs: Sequence[ReferenceFile],
@@ -302,6 +325,23 @@ def best(job: pb.Job) -> tuple[int, float] | None:
     if job.iteration <= 0 or job.best_iteration < 0:
         return None
     return job.best_iteration, job.best_loss
+
+
+# Job.stop_reason in words, where the state does not already say it ("SUCCEEDED after 30
+# iterations", "CANCELLED").
+STOP_REASONS = {"iterations": "", "cancelled": "", "failed": "",
+                "min_error": "the loss fell below min error"}
+
+
+def stop_reason(job: pb.Job) -> str:
+    """Why a job ended, in words; "" where its state and iteration count say it all."""
+    return STOP_REASONS.get(job.stop_reason, job.stop_reason)
+
+
+def state_text(job: pb.Job) -> str:
+    """``SUCCEEDED (the loss fell below min error)``: the state, with why it ended."""
+    reason = stop_reason(job)
+    return mc.state_name(job.state) + (f" ({reason})" if reason else "")
 
 
 def sensor_indices(indices: Iterable[int]) -> str:

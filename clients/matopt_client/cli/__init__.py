@@ -31,6 +31,18 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
+class _ReaderGone(Exception):
+    """stdout's reader has gone: an exception click lets through to :meth:`Main.main`."""
+
+
+def _reader_gone() -> int:
+    """stdout's reader stopped reading (``matopt info | head -1``): that is how such a pipe
+    ends, not an error. What is still buffered goes nowhere, so that the interpreter's own
+    flush at exit cannot fail in turn."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0
+
+
 def _usage_message(exc: click.UsageError) -> str:
     text = exc.format_message()
     if exc.ctx is not None:
@@ -45,11 +57,27 @@ class Main(Group):
     the group directly (click's test runner, ``python -m``).
     """
 
+    # click answers a closed pipe with exit status 1: it is told of one as something else.
+    def make_context(self, *args, **kwargs) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)  # --help prints from here
+        except BrokenPipeError:
+            raise _ReaderGone() from None
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except BrokenPipeError:
+            raise _ReaderGone() from None
+
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         try:
             result = super().main(args, prog_name or "matopt", complete_var,
                                   standalone_mode=False, **extra)
             code = result if isinstance(result, int) else 0
+            sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+        except (BrokenPipeError, _ReaderGone):
+            code = _reader_gone()
         except click.UsageError as exc:
             code = _fail(_usage_message(exc), exc.exit_code)
         except click.ClickException as exc:

@@ -227,6 +227,7 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
     created = workflow.start_job(client, spec, references,
                                  (from_job, WHICH[from_which.lower()]) if from_job else None,
                                  uploading)
+    note(f"{created.name}: {workflow.applied(created.spec)}")
     for line in created.notes:  # what the daemon saw fit to say at once: large parameters
         warn(line)
     if as_json and not wait:
@@ -266,7 +267,7 @@ def list_jobs(state: str | None, as_json: bool) -> None:
           [[j.name, mc.state_name(j.state), f"{j.iteration}/{j.spec.iterations}",
             number(j.loss) if j.iteration else "",
             number(j.best_loss) if j.iteration and j.best_iteration >= 0 else "",
-            j.spec.scene, timestamp(j.create_time)]
+            j.spec.scene.removeprefix("scenes/"), timestamp(j.create_time)]
            for j in jobs])
 
 
@@ -285,7 +286,7 @@ def status(name: str, as_json: bool) -> None:
     spec = j.spec
     fields({
         "name": j.name,
-        "state": mc.state_name(j.state) + (f" ({j.stop_reason})" if j.stop_reason else ""),
+        "state": workflow.state_text(j),
         "error": j.error or None,
         "scene": spec.scene,
         "iteration": f"{j.iteration}/{spec.iterations}",
@@ -296,9 +297,7 @@ def status(name: str, as_json: bool) -> None:
         "references": ", ".join(workflow.reference_label(r)
                                 for r in workflow.reference_files(spec.references)),
         "fit exposure": "yes (an RGB gain per reference)" if spec.fit_exposure else None,
-        "loss function": enums.short_name(pb.Loss, spec.loss),
-        "spp": spec.spp,
-        "min error": number(spec.min_error),
+        "settings": workflow.applied(spec),
         "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),
         "sensors rendered": workflow.sensor_indices(j.sensors_rendered),
         "skipped steps": j.skipped_steps,
@@ -366,8 +365,22 @@ def watch_job(name: str, as_json: bool) -> None:
     outcome(follow(connected(), name, show))
 
 
-def _control(verb: str, rpc: str, request_type, doc: str) -> None:
-    """pause/resume/cancel: the same command shape around a different RPC."""
+def requested(j: pb.Job, target: int) -> str:
+    """The state a pause or cancel leads to: ``jobs/x PAUSED``, or while the job finishes
+    the iteration under way, ``jobs/x RUNNING, then PAUSED at its next iteration boundary``
+    with what the daemon says happens until then."""
+    if j.state == target:
+        return f"{j.name} {mc.state_name(j.state)}"
+    pending = next((n.removeprefix("end phase: ") for n in j.notes
+                    if n.startswith("end phase: ")), None)
+    return (f"{j.name} {mc.state_name(j.state)}, then {mc.state_name(target)} at its next "
+            f"iteration boundary" + (f" ({pending})" if pending else "")
+            + f"; 'matopt job watch {j.name}' follows it")
+
+
+def _control(verb: str, rpc: str, request_type, target: int | None, doc: str) -> None:
+    """pause/resume/cancel: the same command shape around a different RPC; ``target``: the
+    state the request leads to (None: the state answered is the one it leads to)."""
 
     @job.command(verb, help=doc)
     @click.argument("name", metavar="JOB", type=JOB)
@@ -376,37 +389,22 @@ def _control(verb: str, rpc: str, request_type, doc: str) -> None:
         j = getattr(connected().jobs, rpc)(request_type(name=name))
         if as_json:
             emit_json(j)
-        else:
+        elif target is None or j.state in mc.TERMINAL_STATES - {target}:
             click.echo(f"{j.name} {mc.state_name(j.state)}")
+        else:
+            click.echo(requested(j, target))
 
 
-_control("pause", "PauseJob", pb.PauseJobRequest,
-         "Pause a job (at its next iteration).\n\nPrints the job's state, which changes at the "
-         "next iteration boundary: 'matopt job watch' shows it.")
-_control("resume", "ResumeJob", pb.ResumeJobRequest,
+_control("pause", "PauseJob", pb.PauseJobRequest, pb.JOB_STATE_PAUSED,
+         "Pause a job (at its next iteration).\n\nPrints the state the job is in and, while "
+         "it finishes its iteration, the state it is going to (PAUSED).")
+_control("resume", "ResumeJob", pb.ResumeJobRequest, None,
          "Resume a paused or interrupted job.")
-@job.command("cancel")
-@click.argument("name", metavar="JOB", type=JOB)
-@json_option
-def cancel(name: str, as_json: bool) -> None:
-    """Cancel a job (at its next iteration).
-
-    Its results so far are kept: a running job stops at its next iteration boundary, then
-    renders its result images (one sensor at a time, other jobs running in between) and
-    ends CANCELLED. Prints the job's state and, while the cancel is pending, what happens
-    next.
-    """
-    j = connected().jobs.CancelJob(pb.CancelJobRequest(name=name))
-    if as_json:
-        emit_json(j)
-        return
-    pending = next((n.removeprefix("end phase: ") for n in j.notes
-                    if n.startswith("end phase: ")), None)
-    if j.state in (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED) or pending is None:
-        click.echo(f"{j.name} {mc.state_name(j.state)}")
-    else:
-        click.echo(f"{j.name} {mc.state_name(j.state)}: {pending}; "
-                   f"'matopt job watch {j.name}' follows it to the end")
+_control("cancel", "CancelJob", pb.CancelJobRequest, pb.JOB_STATE_CANCELLED,
+         "Cancel a job (at its next iteration).\n\nIts results so far are kept: a running "
+         "job stops at its next iteration boundary, then renders its result images (one "
+         "sensor at a time, other jobs running in between) and ends CANCELLED. Prints the "
+         "state the job is in and, until it ends, what happens next.")
 
 
 @job.command()

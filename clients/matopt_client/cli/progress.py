@@ -12,14 +12,16 @@ from typing import Callable
 
 import click
 import grpc
+from tqdm import tqdm
 
 from matopt_client import client as mc
 from matopt_client import workflow
-from matopt_client.cli.output import best, note, number, parameter_error
+from matopt_client.cli.output import best, note, number, parameter_error, stop_reason
 from matopt_api.v1 import matopt_pb2 as pb
 
-BAR_WIDTH = 24
-MIN_BAR_WIDTH = 8  # narrower, a bar shows too little to be worth its columns
+# tqdm's layout; {postfix} comes with its own leading ", ".
+BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt}{postfix}"
+MIN_BAR_WIDTH = 10  # narrower, the best loss and then the time are left out to keep the bar
 
 
 class Interrupted(click.ClickException):
@@ -29,32 +31,30 @@ class Interrupted(click.ClickException):
 
 
 class JobProgress:
-    """Shows a job's progress on stderr while it runs.
+    """Shows a job's progress on stderr while it runs (tqdm draws the bar).
 
-    On a terminal one line rewrites itself (bar, iteration/total, loss), fitted to the
-    terminal's width: a wrapped line could not be rewritten and would scroll a new line per
-    update. In a log (not a terminal), a line per state change and per tenth of the
-    iterations, each a complete line, so CI logs stay short but show movement. The best loss
-    is the daemon's (Job.best_loss), never recomputed here.
+    On a terminal one line rewrites itself (state, bar, iteration/total, loss, best, time),
+    fitted to the terminal's width. In a log (not a terminal), a line per state change and
+    per tenth of the iterations, each a complete line, so CI logs stay short but show
+    movement. The best loss is the daemon's (Job.best_loss), never recomputed here.
     """
 
     def __init__(self, interactive: bool | None = None) -> None:
         self.interactive = sys.stderr.isatty() if interactive is None else interactive
-        self.name = ""
         self.state = ""
         self.total = 0
         self.iteration = 0
         self.loss: float | None = None
         self.best: float | None = None
         self.seconds = 0.0
-        self._width = 0
         self._last_tenth = -1
+        self._bar: tqdm | None = None
 
     def __call__(self, event: pb.JobEvent) -> None:
         if event.HasField("job"):
             job = event.job
             changed = mc.state_name(job.state) != self.state
-            self.name, self.state = job.name, mc.state_name(job.state)
+            self.state = mc.state_name(job.state)
             self.total, self.iteration = job.spec.iterations, job.iteration
             self.seconds = job.elapsed_seconds
             if job.iteration:
@@ -75,42 +75,46 @@ class JobProgress:
                 self._last_tenth = tenth
                 note(self.line())
         if self.interactive:
-            # One column short of the width: a line filling the last column wraps on some
-            # terminals, and the next carriage return would then rewrite the wrong line.
-            width = shutil.get_terminal_size().columns - 1
-            text = self.line(width)
-            click.echo("\r" + text.ljust(min(self._width, width)), nl=False, err=True)
-            self._width = len(text)
+            self._draw()
 
     def _tenth(self) -> int:
         return self.iteration * 10 // self.total if self.total else 0
 
-    def line(self, width: int | None = None) -> str:
-        """The progress in at most ``width`` characters (None: as long as it takes).
-
-        The bar shrinks first, down to MIN_BAR_WIDTH, then goes; what still does not fit is
-        cut at the end, marked with '…'.
-        """
-        before, after = [self.name, self.state], [f"{self.iteration}/{self.total}"]
-        if self.loss is not None:
-            after.append(f"loss {number(self.loss)}")
+    def _meter(self, width: int | None) -> dict:
+        """tqdm's fields for a line of at most ``width`` columns (None: any)."""
+        extras = [f"loss {number(self.loss)}"] if self.loss is not None else []
+        extras.append(f"{self.seconds:.1f} s")
         if self.best is not None:
-            after.append(f"best {number(self.best)}")
-        after.append(f"{self.seconds:.1f} s")
-        text = "  ".join(before + after)
-        bar_width = BAR_WIDTH if width is None else min(BAR_WIDTH, width - len(text) - 4)
-        if self.total and bar_width >= MIN_BAR_WIDTH:
-            done = min(self.iteration, self.total) * bar_width // self.total
-            text = "  ".join(before + ["[" + "#" * done + "." * (bar_width - done) + "]"]
-                             + after)
-        if width is not None and len(text) > width:
-            text = text[:max(width - 1, 0)] + "…"
-        return text
+            extras.append(f"best {number(self.best)}")
+        while True:
+            meter = dict(n=min(self.iteration, self.total), total=self.total or None,
+                         elapsed=self.seconds, prefix=self.state, postfix="  ".join(extras),
+                         bar_format=BAR_FORMAT)
+            bare = tqdm.format_meter(**{**meter, "bar_format": BAR_FORMAT.replace("{bar}", "")})
+            if width is None or not extras or width - len(bare) >= MIN_BAR_WIDTH:
+                return meter
+            extras.pop()
+
+    def line(self, width: int | None = None) -> str:
+        """The progress in at most ``width`` columns (None: with a bar of tqdm's size)."""
+        return tqdm.format_meter(ncols=width, **self._meter(width))
+
+    def _draw(self) -> None:
+        # One column short of the width: a line filling the last column wraps on some
+        # terminals, and the next carriage return would then rewrite the wrong line.
+        width = shutil.get_terminal_size().columns - 1
+        meter = self._meter(width)
+        if self._bar is None:
+            self._bar = tqdm(file=sys.stderr, bar_format=BAR_FORMAT, mininterval=0)
+        self._bar.ncols, self._bar.total, self._bar.n = width, meter["total"], meter["n"]
+        self._bar.set_description_str(meter["prefix"], refresh=False)
+        self._bar.set_postfix_str(meter["postfix"], refresh=False)
+        self._bar.refresh()
 
     def close(self) -> None:
-        if self.interactive and self._width:
-            click.echo(err=True)
-            self._width = 0
+        if self._bar is not None:
+            self._bar.close()  # leaves the last line standing
+            self._bar = None
 
 
 def describe(event: pb.JobEvent, total: int = 0) -> str:
@@ -168,9 +172,10 @@ def outcome(job: pb.Job) -> None:
     """Reports how the job ended; raises (exit status 1) unless it SUCCEEDED."""
     state = mc.state_name(job.state)
     if job.state == pb.JOB_STATE_SUCCEEDED:
-        reason = f" ({job.stop_reason})" if job.stop_reason else ""
+        reason = stop_reason(job)
         lowest = f"; best loss {best(job)}" if best(job) else ""
-        note(f"{job.name} SUCCEEDED after {job.iteration} iterations{reason}{lowest}")
+        note(f"{job.name} SUCCEEDED after {job.iteration} iterations"
+             f"{f' ({reason})' if reason else ''}{lowest}")
         return
     if job.state == pb.JOB_STATE_FAILED:
         raise click.ClickException(f"job '{job.name}' FAILED: {job.error or 'no reason given'}")

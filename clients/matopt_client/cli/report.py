@@ -25,10 +25,10 @@ from typing import Iterable, Sequence
 import click
 
 from matopt_client import client as mc
+from matopt_client import workflow
 from matopt_client.cli.output import emit_json, note
 from matopt_client.cli.params import JOB
 from matopt_client.cli.session import connected
-from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 PLOT_HINT = "plots need matplotlib: install matopt-mitsuba[plot] (pip install 'matopt-mitsuba[plot]')"
@@ -97,8 +97,8 @@ def record_row(record: pb.IterationRecord, truth: dict[str, list[float]]) -> Row
 def default_label(job: pb.Job) -> str:
     """The job's id and the settings that usually tell two compared methods apart."""
     spec = job.spec
-    loss = enums.short_name(pb.Loss, spec.loss).lower() if spec.loss else "mse"
-    schedule = enums.short_name(pb.Schedule, spec.schedule).lower() if spec.schedule else "cosine"
+    loss = workflow.choice_name(pb.Loss, spec.loss)
+    schedule = workflow.choice_name(pb.Schedule, spec.schedule)
     return f"{job.name.removeprefix('jobs/')} ({loss}, {spec.spp} spp, {schedule})"
 
 

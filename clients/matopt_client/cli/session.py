@@ -15,12 +15,10 @@ from typing import Callable
 
 import click
 
-from matopt_client.client import Client, connect
-
-DEFAULT_SERVER = "127.0.0.1:50051"
+from matopt_client.client import DEFAULT_PORT, DEFAULT_SERVER, Client, connect
 
 _OPTIONS = {  # name -> (environment variable, help)
-    "server": ("MATOPT_SERVER", "matoptd address, host:port"),
+    "server": ("MATOPT_SERVER", f"matoptd address, host:port (port {DEFAULT_PORT} if left out)"),
     "token": ("MATOPT_TOKEN", "access token, sent as 'authorization: Bearer <token>'"),
     "tls_ca": ("MATOPT_TLS_CA", "PEM file of the CA that signed the daemon's certificate; "
                                 "enables TLS"),

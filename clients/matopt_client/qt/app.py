@@ -371,7 +371,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
                     "dialog or MATOPT_TOKEN, never from the command line (where other users "
                     "could read it).")
     parser.add_argument("--server", help="matoptd address host:port (default: the last one "
-                                         "used, else MATOPT_SERVER, else 127.0.0.1:50051)")
+                                         f"used, else MATOPT_SERVER, else {mc.DEFAULT_SERVER})")
     parser.add_argument("--tls-ca", help="PEM file of the CA that signed the daemon's "
                                          "certificate (default: the last one used)")
     parser.add_argument("scene", nargs="?", help="a scene XML to open after connecting")

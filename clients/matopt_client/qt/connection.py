@@ -25,7 +25,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SERVER = "127.0.0.1:50051"  # what matoptd listens on by default, as for the CLI
+DEFAULT_SERVER = mc.DEFAULT_SERVER
 PROBE_TIMEOUT_S = 3.0
 
 

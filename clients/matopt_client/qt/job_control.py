@@ -255,8 +255,7 @@ class JobControl:
             if job.state == pb.JOB_STATE_FAILED:
                 self.show_banner(f"{job.name} FAILED: {job.error or 'no reason given'}")
             else:
-                self.status(f"{job.name} {mc.state_name(job.state)}"
-                            + (f" ({job.stop_reason})" if job.stop_reason else ""))
+                self.status(f"{job.name} {workflow.state_text(job)}")
         elif job.state == pb.JOB_STATE_INTERRUPTED:
             # The daemon stopped while the job ran: is it still there at all?
             self.connection.check_now()

@@ -1,9 +1,10 @@
 """The job's settings besides parameters and references: loss, schedule, iterations, spp,
 min error, how sensors step, clamping, fitting the references' exposure. The fields start
-at the daemon's documented defaults (100 iterations, 16 spp, min error 0: off) so that what
-the user sees is what runs. The losses, schedules and sensor modes offered are the ones the
-daemon announces (ServerInfo), filled in on connecting: a loss the daemon gains shows up
-without a change here.
+at "daemon default": what is left so is not sent, and the daemon fills it in (the job's
+spec, shown with the job, says what it applied); this client keeps no copy of the daemon's
+defaults. The losses, schedules and sensor modes offered are the ones the daemon announces
+(ServerInfo), filled in on connecting: a loss the daemon gains shows up without a change
+here.
 """
 
 from __future__ import annotations
@@ -29,11 +30,16 @@ LOSS_TIPS = {
 }
 
 
+DEFAULT = "daemon default"  # a field left to the daemon: not sent
+
+
 def _fill(combo: QComboBox, names: Sequence[str], tips: dict[str, str] | None = None) -> None:
-    """The daemon's names as the items' data, shown with spaces for underscores (except
-    losses, which read as the CLI's --loss); the selection is kept when still offered."""
+    """The daemon's names as the items' data, after DEFAULT (no data), shown with spaces for
+    underscores (except losses, which read as the CLI's --loss); the selection is kept when
+    still offered."""
     current = combo.currentData()
     combo.clear()
+    combo.addItem(DEFAULT, None)
     for name in names:
         combo.addItem(name if tips is not None else name.replace("_", " "), name)
         if tips and name in tips:
@@ -52,6 +58,14 @@ def _select(combo: QComboBox, name: str | None) -> None:
         combo.setCurrentIndex(index)
 
 
+def _unset_spin_box(most: int) -> QSpinBox:
+    """A count from 1 to ``most``, or 0 shown as DEFAULT."""
+    box = QSpinBox()
+    box.setRange(0, most)
+    box.setSpecialValueText(DEFAULT)
+    return box
+
+
 class JobSettingsForm(QWidget):
     """A form whose values are a ``workflow.JobSettings``."""
 
@@ -67,20 +81,17 @@ class JobSettingsForm(QWidget):
         self.schedule = QComboBox()
         self.schedule.setToolTip("cosine: the learning rate decays to a tenth over the job, "
                                  "so the last iterate settles")
-        self.iterations = QSpinBox()
-        self.iterations.setRange(1, 1_000_000)
-        self.iterations.setValue(100)
-        self.spp = QSpinBox()
-        self.spp.setRange(1, 65536)
-        self.spp.setValue(16)
+        self.iterations = _unset_spin_box(1_000_000)
+        self.spp = _unset_spin_box(65536)
         self.spp.setToolTip("samples per pixel of each optimization step")
-        self.min_error = QLineEdit("0")
+        self.min_error = QLineEdit()
+        self.min_error.setPlaceholderText(DEFAULT)
         validator = QDoubleValidator(0.0, 1e30, 12)
         validator.setNotation(QDoubleValidator.Notation.ScientificNotation)
         validator.setLocale(QLocale.c())  # "0.001" everywhere, as the CLI and the API write it
         self.min_error.setValidator(validator)
         self.min_error.setToolTip("stop once the loss (mean over sensors) is below this; "
-                                  "0 (the default) runs all iterations")
+                                  "0 runs all iterations")
         self.sensor_mode = QComboBox()
         self.sensor_mode.setToolTip("accumulate: one step per iteration from all sensors' "
                                     "gradients; step per sensor: one step per sensor per "
@@ -130,16 +141,18 @@ class JobSettingsForm(QWidget):
             self.min_error.setText(f"{min_error:g}")
 
     def values(self) -> workflow.JobSettings:
-        """The form's settings, every field given. ValueError for a min error that is no
-        number; a choice left empty (before connecting) is the daemon's default."""
+        """The form's settings; those left at DEFAULT are None. ValueError for a min error
+        that is no number."""
+        text = self.min_error.text().strip()
         try:
-            min_error = float(self.min_error.text())
+            min_error = float(text) if text else None
         except ValueError:
-            raise ValueError(f"min error '{self.min_error.text()}' is not a number") from None
+            raise ValueError(f"min error '{text}' is not a number") from None
         return workflow.JobSettings(
             loss=self.loss.currentData(), schedule=self.schedule.currentData(),
-            sensor_mode=self.sensor_mode.currentData(), iterations=self.iterations.value(),
-            spp=self.spp.value(), min_error=min_error, clamp=self.clamp.isChecked(),
+            sensor_mode=self.sensor_mode.currentData(),
+            iterations=self.iterations.value() or None, spp=self.spp.value() or None,
+            min_error=min_error, clamp=self.clamp.isChecked(),
             fit_exposure=self.fit_exposure.isChecked())
 
     def apply(self, spec: pb.JobSpec) -> None:

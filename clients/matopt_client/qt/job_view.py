@@ -162,15 +162,15 @@ class JobView(QWidget):
                 button.setEnabled(False)
             self.notes.hide()
             return
-        state = mc.state_name(job.state)
-        reason = f" ({job.stop_reason})" if job.stop_reason else ""
-        text = f"<b>{job.name}</b> — {state}{reason}"
+        text = f"<b>{job.name}</b> — {workflow.state_text(job)}"
         if job.integrator:
             text += f" — {job.integrator}"
         if job.state == pb.JOB_STATE_FAILED and job.error:
             text += f"<br><span style='color:#a00'>{_escape(job.error)}</span>"
         if job.resumed_from:
             text += f"<br>resumed from {job.resumed_from}"
+        # What it runs with, the daemon's defaults filled in: the form may have left them.
+        text += f"<br><small>{_escape(workflow.applied(job.spec))}</small>"
         self.header.setText(text)
         self.notes.setText("; ".join(job.notes))
         self.notes.setVisible(bool(job.notes))
