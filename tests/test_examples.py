@@ -30,6 +30,20 @@ def assert_close(result: dict, tolerance: float = 0.05) -> None:
     assert result["iterations"] == 40  # every history page was read
 
 
+@pytest.mark.parametrize("system,cpu", [("linux", "x64"), ("linux", "arm64"),
+                                        ("darwin", "arm64"), ("darwin", "x64"),
+                                        ("win32", "x64")])
+def test_npm_ci_takes_the_lock_file_on_every_platform(node_tools, tmp_path, system, cpu):
+    """The lock file lists buf's build for each platform, so `npm ci` accepts it anywhere
+    (a lock with this machine's build only fails with "Missing: ... from lock file")."""
+    for name in ("package.json", "package-lock.json"):
+        shutil.copy(node_tools / name, tmp_path / name)
+    out = subprocess.run(["npm", "ci", "--dry-run", "--ignore-scripts", "--no-audit",
+                          "--no-fund", f"--os={system}", f"--cpu={cpu}"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
     if not shutil.which("openssl"):
