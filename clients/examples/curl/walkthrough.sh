@@ -7,20 +7,43 @@
 #
 #   walkthrough.sh HOST:PORT [TOKEN] [CA_PEM]
 #
-# grpcurl is used when it is on PATH; otherwise `buf curl` ($BUF, default `buf`; npm's
-# @bufbuild/buf). With CA_PEM the connection uses TLS and trusts that certificate authority.
-# JSON is taken apart with python3.
+# grpcurl is used when it is on PATH; otherwise `buf curl`: $BUF, else buf on PATH, else buf
+# fetched once by Node.js's npx into npm's cache, at the version the Node.js example's lock
+# file pins. With CA_PEM the connection uses TLS and trusts that certificate authority. JSON
+# is taken apart with python3.
 set -euo pipefail
 
 SERVER=${1:?usage: walkthrough.sh HOST:PORT [TOKEN] [CA_PEM]}
 TOKEN=${2:-}
 CA=${3:-}
-SCENE=$(cd "$(dirname "$0")/../scene" && pwd)
+HERE=$(cd "$(dirname "$0")" && pwd)
+SCENE=$(cd "$HERE/../scene" && pwd)
 KEY=plate.bsdf.reflectance.value   # the plate's colour in scene/plate.xml
 TRUTH='[0.7, 0.3, 0.2]'
 ITERATIONS=${ITERATIONS:-40}
 
 say() { echo "$@" >&2; }
+
+# buf_from_npm: the path of buf as npx fetches it (once; later runs find it in npm's cache).
+buf_from_npm() {
+    local version
+    version=$(python3 -c 'import json, sys
+print(json.load(open(sys.argv[1]))["packages"]["node_modules/@bufbuild/buf"]["version"])' \
+              "$HERE/../node/package-lock.json")
+    say "fetching buf $version with npx (neither grpcurl nor buf is on PATH)"
+    npx --yes --package "@bufbuild/buf@$version" -c 'command -v buf'
+}
+
+if ! command -v grpcurl >/dev/null && [ -z "${BUF:-}" ]; then
+    if command -v buf >/dev/null; then
+        BUF=buf
+    elif command -v npx >/dev/null; then
+        BUF=$(buf_from_npm)
+    else
+        say "walkthrough.sh: needs grpcurl, or buf, or Node.js (whose npx fetches buf) on PATH"
+        exit 2
+    fi
+fi
 
 # call SERVICE/METHOD: the request (JSON; several documents for a client stream) on stdin,
 # the response(s) as JSON on stdout. Fails with the status and message on stderr.
@@ -34,7 +57,7 @@ call() {
     else
         local url="http://$SERVER" tls=(--http2-prior-knowledge)
         [ -n "$CA" ] && url="https://$SERVER" tls=(--cacert "$CA")
-        "${BUF:-buf}" curl --protocol grpc "${tls[@]}" "${headers[@]}" -d @- "$url/matopt.v1.$1"
+        "$BUF" curl --protocol grpc "${tls[@]}" "${headers[@]}" -d @- "$url/matopt.v1.$1"
     fi
 }
 
