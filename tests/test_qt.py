@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -36,6 +37,7 @@ from matopt_client.qt.connection import ConnectionSettings, SettingsStore  # noq
 from matopt_client.qt.jobs_list import JobsList  # noqa: E402
 from matopt_client.qt.params_table import CURRENT, LR, VALUE  # noqa: E402
 from matopt_client.qt.scene_control import parse_overrides  # noqa: E402
+from matopt_api import __version__  # noqa: E402
 from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 
 from conftest import TOKENS, Daemon, token_file  # noqa: E402
@@ -617,3 +619,50 @@ def test_parse_overrides():
     with pytest.raises(ValueError, match="'resx' is not of the form NAME=VALUE"):
         parse_overrides("resx")
 
+
+
+@pytest.fixture
+def x_display():
+    """A display of Xvfb's (skipped where it is not installed: deploy/setup.sh installs it
+    with the test extra)."""
+    if not shutil.which("Xvfb"):
+        pytest.skip("needs Xvfb (apt-get install xvfb)")
+    read, write = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "1280x1024x24",
+                             "-nolisten", "tcp"], pass_fds=[write],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(write)
+    with os.fdopen(read) as pipe:
+        number = pipe.readline().strip()
+    try:
+        assert number, "Xvfb reported no display"
+        yield f":{number}"
+    finally:
+        xvfb.terminate()
+        xvfb.wait(timeout=30)
+
+
+def test_the_app_starts_on_an_x_server(daemon, x_display, tmp_path):
+    """matopt-qt on a plain X server (Qt's xcb platform, not offscreen): it aborted while
+    libxcb-cursor0, libxcb-icccm4 and libxcb-keysyms1 were missing. It opens its window and
+    connects; a timer started before main() then ends it."""
+    code = ("import sys\n"
+            "from PySide6.QtCore import QTimer\n"
+            "from PySide6.QtWidgets import QApplication\n"
+            "from matopt_client.qt.app import MainWindow, main\n"
+            "app = QApplication(sys.argv[:1])\n"
+            "def check():\n"
+            "    window = next(w for w in app.topLevelWidgets() if isinstance(w, MainWindow))\n"
+            "    if window.isVisible() and window.connection.info is not None:\n"
+            "        print(app.platformName(), window.connection.info.version)\n"
+            "        app.quit()\n"
+            "timer = QTimer(interval=100, timeout=check)\n"
+            "timer.start()\n"
+            "QTimer.singleShot(60000, lambda: app.exit(3))\n"
+            f"sys.exit(main(['--server', {daemon.address!r}]))\n")
+    env = {**os.environ, "DISPLAY": x_display, "QT_QPA_PLATFORM": "xcb",
+           "XDG_CONFIG_HOME": str(tmp_path), "HOME": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["xcb", __version__]  # the window, connected to the daemon
