@@ -254,8 +254,9 @@ def test_a_cancelled_many_sensor_job_ends_promptly_while_others_go_on(two_users)
     time.sleep(0.5)
     out = matopt(daemon.address, "job", "cancel", mine, token=TOKENS["alice"])
     assert out.returncode == 0, out.stderr
-    assert out.stdout.startswith(f"{mine} RUNNING: cancel requested: the job stops at its "
-                                 "next iteration boundary, then renders its result images")
+    assert out.stdout.startswith(f"{mine} RUNNING, then CANCELLED at its next iteration "
+                                 "boundary (cancel requested: the job stops at its next "
+                                 "iteration boundary, then renders its result images")
     assert f"'matopt job watch {mine}'" in out.stdout
     watcher.join(300)
     done = alice.jobs.GetJob(pb.GetJobRequest(name=mine))
