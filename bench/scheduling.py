@@ -64,7 +64,7 @@ from dataclasses import dataclass, field
 
 import common
 from common import Result, Settings, Target
-from matoptd.scheduler import SLICE_SECONDS, STEP_SECONDS, Action, Scheduler
+from matoptd.scheduling.scheduler import SLICE_SECONDS, STEP_SECONDS, Action, Scheduler
 
 NEEDS_DAEMON = False       # run.py: a pure simulation, no matoptd to start
 

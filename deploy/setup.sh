@@ -35,5 +35,5 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[daemon,qt,plot,test,ray]"
-llvm=$(.venv/bin/python -c "from matoptd.devices import find_libllvm; print(find_libllvm() or '')")
+llvm=$(.venv/bin/python -c "from matoptd.workers.devices import find_libllvm; print(find_libllvm() or '')")
 echo "setup: ready in .venv (Dr.Jit's CPU backend will use ${llvm:-no libLLVM >= 16 found})"

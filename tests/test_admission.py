@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from matoptd import admission, engine_api as api
-from matoptd.admission import Limits
+from matoptd import engine_api as api
+from matoptd.server import admission
+from matoptd.server.admission import Limits
 from matoptd.errors import InvalidArgument, ResourceExhausted
-from matoptd.image_headers import ImageHeader
+from matoptd.server.image_headers import ImageHeader
 
 from scenes import exr, png
 from test_image_headers import png_header_only

@@ -18,7 +18,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
-from matoptd.store import Store
+from matoptd.store.store import Store
 from scenes import camera, upload
 
 USERS = {**TOKENS, "carol": "carol-token-0123456789"}

@@ -4,7 +4,7 @@ changes never do. Pure logic, no daemon."""
 from __future__ import annotations
 
 from matopt_api.v1 import matopt_pb2 as pb
-from matoptd.events import EventQueue
+from matoptd.scheduling.events import EventQueue
 
 
 def _iteration(i: int) -> pb.JobEvent:

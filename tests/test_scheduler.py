@@ -10,7 +10,7 @@ import collections
 
 import pytest
 
-from matoptd.scheduler import Action, Scheduler
+from matoptd.scheduling.scheduler import Action, Scheduler
 
 ITERATION = 0.01                                    # seconds per iteration of every job
 COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.0, "results": 0.3,

@@ -34,12 +34,18 @@ from pathlib import Path
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
-from . import __version__, admission, devices, reflection
-from .auth import Authenticator, load_tokens
-from .runner import Runner
-from .server import Service, add_services
-from .store import Store
-from .workers import Worker
+from matoptd import __version__
+
+from matoptd.server import admission
+
+from matoptd.workers import devices
+
+from matoptd.server import reflection
+from matoptd.server.auth import Authenticator, load_tokens
+from matoptd.scheduling.runner import Runner
+from matoptd.server.handlers import Service, add_services
+from matoptd.store.store import Store
+from matoptd.workers.handle import Worker
 
 log = logging.getLogger("matoptd")
 MAX_MESSAGE = 64 << 20
@@ -261,7 +267,7 @@ def start_ray_workers(args: argparse.Namespace, store: Store):
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
     try:
-        from . import ray_workers
+        from matoptd.workers import ray_cluster as ray_workers
     except ImportError as exc:
         raise SystemExit(f"matoptd: --ray needs Ray ({exc}); pip install 'matopt-mitsuba[daemon,ray]'")
     try:

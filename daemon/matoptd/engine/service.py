@@ -23,7 +23,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import engine_api as api, film_filter
+from .. import engine_api as api
+from . import film_filter
 from . import diagnosis, images, parameters, scene as scenes, scene_export
 from .integrator import medium_notes
 from .optimize import Best, Config, Optimization, Reference, Setting

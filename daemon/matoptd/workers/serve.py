@@ -29,7 +29,7 @@ import traceback
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from . import engine_api as api
+from matoptd import engine_api as api
 
 PR_SET_PDEATHSIG = 1
 
@@ -81,7 +81,7 @@ def warm_up() -> None:
     import drjit as dr
     import mitsuba as mi
 
-    scene = mi.load_file(str(Path(__file__).parent / "engine" / "cornell_box.xml"),
+    scene = mi.load_file(str(Path(__file__).parent.parent / "engine" / "cornell_box.xml"),
                          resx=16, resy=16)
     params = mi.traverse(scene)
     key = "red.reflectance.value"
@@ -96,7 +96,7 @@ def warm_up() -> None:
 def serve(conn: Connection, cache: Path) -> None:
     """Answers calls until the daemon says exit or goes away. ``conn`` is a socket
     connection, or anything with its ``send`` and ``recv`` (a Ray actor's queues)."""
-    from .engine.service import MitsubaEngine
+    from matoptd.engine.service import MitsubaEngine
 
     def fetch(sha256: str) -> bytes:
         conn.send(("fetch", sha256))
@@ -136,7 +136,7 @@ def prepare(variant_name: str, threads: int) -> dict:
         # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
         # writer wait forever. On one core the two take turns.
         dr.set_thread_count(max(2, threads))
-    from .engine import scene, variant
+    from matoptd.engine import scene, variant
     name, device = variant.select(variant_name)
     scene.preload_plugins()
     warm_up()
@@ -146,7 +146,7 @@ def prepare(variant_name: str, threads: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="matoptd.worker")
+    p = argparse.ArgumentParser(prog="matoptd.workers.serve")
     p.add_argument("--fd", type=int, required=True, help="this end of the daemon's socket pair")
     p.add_argument("--parent", type=int, required=True, help="the daemon's pid")
     p.add_argument("--cache", type=Path, required=True, help="this worker's blob cache")

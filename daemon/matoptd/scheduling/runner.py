@@ -29,13 +29,15 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-from . import convert, engine_api as api
-from .errors import DiskFull, FailedPrecondition, Internal, InvalidArgument, NotFound, \
+from matoptd.server import convert
+
+from matoptd import engine_api as api
+from matoptd.errors import DiskFull, FailedPrecondition, Internal, InvalidArgument, NotFound, \
     ResourceExhausted, Unavailable, UserError
-from .events import EventQueue
-from .scheduler import Action, Scheduler
-from .store import Store
-from .workers import CallFailed, Worker, WorkerLost
+from matoptd.scheduling.events import EventQueue
+from matoptd.scheduling.scheduler import Action, Scheduler
+from matoptd.store.store import Store
+from matoptd.workers.handle import CallFailed, Worker, WorkerLost
 
 log = logging.getLogger("matoptd.runner")
 

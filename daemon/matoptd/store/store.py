@@ -28,9 +28,9 @@ from typing import Callable, Iterator
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from . import blob_refs
-from .devices import format_size
-from .errors import DiskFull, FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
+from matoptd.store import blob_refs
+from matoptd.workers.devices import format_size
+from matoptd.errors import DiskFull, FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterator
 
-from . import engine_api as api
-from .devices import format_size
-from .errors import InvalidArgument, ResourceExhausted
-from .image_headers import BadHeader, ImageHeader, read_header
+from matoptd import engine_api as api
+from matoptd.workers.devices import format_size
+from matoptd.errors import InvalidArgument, ResourceExhausted
+from matoptd.server.image_headers import BadHeader, ImageHeader, read_header
 
 MITSUBA_MAX_SAMPLES = 1 << 32  # Mitsuba refuses a render call of this many samples or more
 FILM_BYTES_PER_PIXEL = 16      # a film's float32 RGBA

@@ -17,8 +17,8 @@ import numpy as np
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-from . import engine_api as api
-from .errors import InvalidArgument
+from matoptd import engine_api as api
+from matoptd.errors import InvalidArgument
 
 PutBlob = Callable[[bytes], str]     # bytes -> "blobs/{sha256}"
 ReadBlob = Callable[[str], bytes]    # "blobs/{sha256}" -> bytes

@@ -23,8 +23,8 @@ import ray
 from ray.exceptions import RayError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from .devices import Placement, total_memory
-from .workers import START_TIMEOUT_S, Worker, WorkerLost
+from matoptd.workers.devices import Placement, total_memory
+from matoptd.workers.handle import START_TIMEOUT_S, Worker, WorkerLost
 
 log = logging.getLogger("matoptd.ray")
 
@@ -134,7 +134,7 @@ class RayWorker(Worker):
         return self.info.get("pid", 0) if self._conn is not None else 0
 
     def start(self, timeout: float = START_TIMEOUT_S) -> None:
-        from .ray_actor import EngineActor
+        from matoptd.workers.ray_actor import EngineActor
 
         self._stopping = self._stop_cause = ""
         if not node_alive(self.node):

@@ -32,11 +32,11 @@ from pathlib import Path
 from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 
-from . import meshes
-from .errors import InvalidArgument, NotFound
-from .store import Store
+from matoptd.server import meshes
+from matoptd.errors import InvalidArgument, NotFound
+from matoptd.store.store import Store
 
-CORNELL_BOX = Path(__file__).parent / "engine" / "cornell_box.xml"
+CORNELL_BOX = Path(__file__).parent.parent / "engine" / "cornell_box.xml"
 CORNELL_NAME = "cornell_box.xml"
 LOADABLE_NAME = bundle.RESERVED_PREFIX + "scene.xml"
 

@@ -25,11 +25,23 @@ from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from . import admission, blob_refs, convert, engine_api as api, fields, range_notes, scenes
-from .auth import Authenticator
-from .errors import FailedPrecondition, InvalidArgument, UserError
-from .runner import FINAL, Runner, now
-from .store import CHUNK, Store
+from matoptd.server import admission
+
+from matoptd.store import blob_refs
+
+from matoptd.server import convert
+
+from matoptd import engine_api as api
+
+from matoptd.server import fields
+
+from matoptd import range_notes
+
+from matoptd.server import bundles as scenes
+from matoptd.server.auth import Authenticator
+from matoptd.errors import FailedPrecondition, InvalidArgument, UserError
+from matoptd.scheduling.runner import FINAL, Runner, now
+from matoptd.store.store import CHUNK, Store
 
 log = logging.getLogger("matoptd.server")
 

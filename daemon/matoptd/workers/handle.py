@@ -23,7 +23,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Callable
 
-from .devices import Placement, format_size, worker_environment
+from matoptd.workers.devices import Placement, format_size, worker_environment
 
 log = logging.getLogger("matoptd.workers")
 
@@ -87,7 +87,7 @@ class Worker:
         """Starts the process and waits until it is ready; raises WorkerLost when it is not."""
         ours, theirs = socket.socketpair()
         p = self.placement
-        command = [sys.executable, "-m", "matoptd.worker", "--fd", str(theirs.fileno()),
+        command = [sys.executable, "-m", "matoptd.workers.serve", "--fd", str(theirs.fileno()),
                    "--parent", str(os.getpid()), "--cache", str(self.cache),
                    "--variant", self.variant, "--cores", ",".join(map(str, p.cores)),
                    "--threads", str(p.threads)]

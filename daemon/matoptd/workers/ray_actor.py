@@ -19,8 +19,8 @@ from pathlib import Path
 
 import ray
 
-from . import worker
-from .devices import find_libllvm
+from matoptd.workers import serve as worker
+from matoptd.workers.devices import find_libllvm
 
 
 class QueueConnection:
