@@ -1,88 +1,78 @@
-"""Between the API's protobuf messages and the engine's plain data (``engine_api``): the only
-place the two meet. Large parameter values travel in the API as ``.npy`` blobs; here they are
-decoded (and refused with a message naming the key when they are not what they claim) or
-encoded, so the engine only ever sees arrays.
+"""Between the API's protobuf messages and the daemon's plain data: the records
+(``records.py``), the settings (``settings.py``) and the engine's types (``engine_api``). The
+only module that builds the API's messages from them; requests become plain data in
+``job_spec.py`` (a JobSpec) and here (everything else).
 """
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
-import math
-from typing import Callable
-
 import numpy as np
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-from matoptd import engine_api as api
-from matoptd.errors import InvalidArgument
+from .. import engine_api as api
+from ..errors import InvalidArgument
+from ..records import (BundleFile, ImageRef, JobRecord, Phase, ResultRecord, SceneRecord)
+from ..scheduling.lanes import WorkerStatus
+from ..settings import Values, read_values
+from ..store.blobs import BlobEntry
 
-PutBlob = Callable[[bytes], str]     # bytes -> "blobs/{sha256}"
-ReadBlob = Callable[[str], bytes]    # "blobs/{sha256}" -> bytes
-
-
-# -- values -----------------------------------------------------------------------------------
-
-def npy(data: bytes, what: str) -> np.ndarray:
-    """A flat float32 array from ``.npy`` bytes; INVALID_ARGUMENT naming ``what`` otherwise."""
-    try:
-        array = np.load(io.BytesIO(data), allow_pickle=False)
-    except Exception as exc:  # noqa: BLE001 - numpy raises ValueError, OSError, EOFError...
-        raise InvalidArgument(f"{what} is not a readable .npy array: "
-                              f"{str(exc).strip() or type(exc).__name__}") from None
-    if not isinstance(array, np.ndarray) or array.dtype.kind not in "fiub":
-        raise InvalidArgument(f"{what} holds {getattr(array, 'dtype', type(array))} data, "
-                              "not numbers")
-    flat = array.astype(np.float32).ravel()
-    if not np.isfinite(flat).all():
-        raise InvalidArgument(f"{what} has NaN or infinite components")
-    return flat
+STATES = {p: enums.parse(pb.JobState, p.state) for p in Phase}  # as the API shows them
+END_PHASE = "end phase: "  # the note of a job in its end phase
+WORKER_STATES = {"starting": pb.WORKER_STATE_STARTING, "idle": pb.WORKER_STATE_IDLE,
+                 "busy": pb.WORKER_STATE_BUSY, "restarting": pb.WORKER_STATE_RESTARTING,
+                 "failed": pb.WORKER_STATE_FAILED}
 
 
-def value(v: pb.ParameterValue | pb.ParameterSpec, read_blob: ReadBlob, blob: str,
-          inline, what: str) -> np.ndarray | None:
-    if blob:
-        return npy(read_blob(blob), what)
-    return np.asarray(inline, dtype=np.float32) if len(inline) else None
+def phases(state: int) -> tuple[Phase, ...]:
+    """The phases a ListJobs filter by ``state`` means (none: every job)."""
+    return tuple(p for p, s in STATES.items() if s == state)
 
 
-def values_to_pb(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
-                 put_blob: PutBlob | None) -> list[pb.ParameterValue]:
-    """Small values inline; large ones as .npy blobs (or left out when put_blob is None)."""
-    out = []
-    for key, v in values.items():
-        v = np.asarray(v, dtype=np.float32).ravel()
-        shape = list(shapes.get(key, []))
-        if v.size <= api.SMALL:
-            out.append(pb.ParameterValue(key=key, value=v.tolist(), shape=shape))
-        elif put_blob is not None:
-            buf = io.BytesIO()
-            np.save(buf, v.reshape(shape) if shape else v)
-            out.append(pb.ParameterValue(key=key, shape=shape, blob=put_blob(buf.getvalue())))
-    return out
+def timestamp(seconds: float) -> Timestamp:
+    ts = Timestamp()
+    ts.FromNanoseconds(int(seconds * 1e9))
+    return ts
 
 
-# -- scenes -----------------------------------------------------------------------------------
-
-def scene_input(main_file: str, files: dict[str, str], overrides: dict[str, str],
-                display: str) -> api.SceneInput:
-    """The engine's view of a scene: files by digest; ``key`` names exactly this content."""
-    key = hashlib.sha256(json.dumps([main_file, sorted(files.items()), sorted(overrides.items())]
-                                    ).encode()).hexdigest()[:32]
-    return api.SceneInput(key, main_file, dict(files), dict(overrides), display)
+def blob(sha256: str) -> str:
+    return f"blobs/{sha256}" if sha256 else ""
 
 
-def scene_input_to_json(s: api.SceneInput) -> str:
-    return json.dumps({"main_file": s.main_file, "files": s.files, "overrides": s.overrides,
-                       "display": s.display})
+# -- values ----------------------------------------------------------------------------------
+
+def values_to_pb(values: dict[str, Values], shapes: dict[str, list[int]]
+                 ) -> list[pb.ParameterValue]:
+    return [pb.ParameterValue(key=key, value=v.inline, shape=shapes.get(key, []),
+                              blob=blob(v.sha256)) for key, v in values.items()]
 
 
-def scene_input_from_json(text: str) -> api.SceneInput:
-    d = json.loads(text)
-    return scene_input(d["main_file"], d["files"], d["overrides"], d["display"])
+def arrays_to_pb(values: dict[str, np.ndarray], shapes: dict[str, list[int]]
+                 ) -> list[pb.ParameterValue]:
+    """Small values (those a record carries) inline."""
+    return [pb.ParameterValue(key=key, value=np.asarray(v, dtype=np.float32).ravel().tolist(),
+                              shape=shapes.get(key, [])) for key, v in values.items()]
+
+
+def given_values(inline, blob_name: str) -> Values | None:
+    """Values a request gives inline or by blob; None when it gives neither."""
+    if blob_name:
+        return Values(sha256=blob_name.removeprefix("blobs/"))
+    return Values(list(inline)) if len(inline) else None
+
+
+# -- scenes ----------------------------------------------------------------------------------
+
+def scene_to_pb(s: SceneRecord) -> pb.Scene:
+    return pb.Scene(name=s.name, display_name=s.display_name, main_file=s.main_file,
+                    files=[pb.BundleFile(path=f.path, sha256=f.sha256) for f in s.files],
+                    overrides=s.overrides, sensors=[
+                        pb.Sensor(index=x.index, id=x.id, width=x.width, height=x.height)
+                        for x in s.sensors],
+                    has_media=s.has_media, parameter_count=s.parameter_count,
+                    warnings=s.warnings, create_time=timestamp(s.created))
 
 
 def parameter_to_pb(p: api.ParameterInfo) -> pb.Parameter:
@@ -91,125 +81,138 @@ def parameter_to_pb(p: api.ParameterInfo) -> pb.Parameter:
                         default_learning_rate=p.learning_rate, discontinuous=p.discontinuous)
 
 
-def sensors_to_pb(sensors: list[api.SensorInfo]) -> list[pb.Sensor]:
-    return [pb.Sensor(index=s.index, id=s.id, width=s.width, height=s.height) for s in sensors]
+def bundle_files(files) -> list[BundleFile]:
+    return [BundleFile(f.path, f.sha256) for f in files]
 
 
-def render_request(request: pb.RenderSceneRequest, read_blob: ReadBlob) -> api.RenderRequest:
+def render_request(request: pb.RenderSceneRequest, read) -> api.RenderRequest:
+    """``read``: digest -> bytes, the caller's blobs only."""
     values = {}
     for v in request.parameters:
-        array = value(v, read_blob, v.blob, v.value, f"value of '{v.key}'")
-        if array is None:
+        given = given_values(v.value, v.blob)
+        if given is None:
             raise InvalidArgument(f"parameter '{v.key}' has neither values nor a blob")
-        values[v.key] = array
-    return api.RenderRequest(values, request.spp if request.HasField("spp") else 64,
-                             list(request.sensors), request.seed)
+        try:
+            values[v.key] = read_values(given, read, f"value of '{v.key}'")
+        except ValueError as exc:
+            raise InvalidArgument(str(exc)) from None
+    spp = {"spp": request.spp} if request.HasField("spp") else {}
+    return api.RenderRequest(values, sensors=list(request.sensors), seed=request.seed, **spp)
 
 
-def image_to_pb(image: api.Image, put_blob: PutBlob) -> pb.Image:
-    return pb.Image(sensor=image.sensor, role=image.role, width=image.width,
-                    height=image.height, exr_blob=put_blob(image.exr),
-                    png_blob=put_blob(image.png), parameter=image.parameter)
+def image_to_pb(i: ImageRef) -> pb.Image:
+    return pb.Image(sensor=i.sensor, role=i.role, width=i.width, height=i.height,
+                    exr_blob=blob(i.exr), png_blob=blob(i.png), parameter=i.parameter)
 
 
-# -- jobs -------------------------------------------------------------------------------------
-
-def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
-                 max_samples: int = 0) -> api.JobSettings:
-    """The engine's settings of a job whose spec was validated and defaulted; ``max_samples``
-    is the daemon's limit on one render call (matoptd --max-samples)."""
-    references = [api.ReferenceInput(r.sensor if r.HasField("sensor") else i,
-                                     r.blob.removeprefix("blobs/"), r.filename or r.blob,
-                                     r.mask_blob.removeprefix("blobs/"),
-                                     r.mask_filename or r.mask_blob, r.alpha_mask)
-                  for i, r in enumerate(spec.references)]
-    parameters = [api.ParameterSetting(
-        p.key, p.learning_rate, p.min, p.max,
-        value(p, read_blob, p.initial_blob, p.initial_value, f"initial value of '{p.key}'"),
-        p.smoothness)
-        for p in spec.parameters]
-    truth = {}
-    for t in spec.ground_truth:
-        v = value(t, read_blob, t.blob, t.value, f"ground truth of '{t.key}'")
-        if v is not None:
-            truth[t.key] = v
-    return api.JobSettings(
-        scene=scene, references=references, parameters=parameters,
-        loss=enums.short_name(pb.Loss, spec.loss).lower(), iterations=spec.iterations,
-        min_error=spec.min_error, spp=spec.spp, seed=spec.seed,
-        cosine=spec.schedule != pb.SCHEDULE_CONSTANT, step_per_sensor=spec.sensor_mode == pb.SENSOR_MODE_STEP_PER_SENSOR,
-        clamp=spec.clamp, resolution=spec.film_height, truth=truth,
-        image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64,
-        fit_exposure=spec.fit_exposure, max_samples=max_samples)
+def blob_to_pb(b: BlobEntry) -> pb.Blob:
+    return pb.Blob(name=blob(b.sha256), sha256=b.sha256, size_bytes=b.size, used_by=b.used_by)
 
 
-def reference_names(spec: pb.JobSpec) -> dict[int, str]:
+# -- jobs ------------------------------------------------------------------------------------
+
+def spec_to_pb(job: JobRecord) -> pb.JobSpec:
+    """The job's settings as applied: every default filled in."""
+    s = job.settings
+    spec = pb.JobSpec(
+        scene=job.scene,
+        references=[pb.Reference(sensor=r.sensor, blob=blob(r.sha256), filename=r.name,
+                                 mask_blob=blob(r.mask_sha256), mask_filename=r.mask_name,
+                                 alpha_mask=r.alpha_mask) for r in s.references],
+        parameters=[pb.ParameterSpec(
+            key=p.key, learning_rate=p.learning_rate, min=p.lo, max=p.hi,
+            initial_value=p.initial.inline if p.initial is not None else [],
+            initial_blob=blob(p.initial.sha256) if p.initial is not None else "",
+            smoothness=p.smoothness) for p in s.parameters],
+        loss=enums.parse(pb.Loss, s.loss), iterations=s.iterations, min_error=s.min_error,
+        spp=s.spp, seed=s.seed, schedule=enums.parse(pb.Schedule, s.schedule),
+        sensor_mode=enums.parse(pb.SensorMode, s.sensor_mode), clamp=s.clamp,
+        film_height=s.film_height, ground_truth=values_to_pb(s.truth, {}),
+        image_error_every=s.image_error_every, image_error_spp=s.image_error_spp,
+        fit_exposure=s.fit_exposure)
+    if s.learning_rate is not None:
+        spec.learning_rate = s.learning_rate
+    return spec
+
+
+def end_phase(job: JobRecord) -> str | None:
+    """What a job in its end phase is doing, for its notes."""
+    if job.phase is Phase.CANCELLING:
+        return ("cancel requested: the job stops at its next iteration boundary, then renders "
+                "its result images one sensor at a time (other jobs run in between) and ends "
+                "CANCELLED")
+    e = job.ending
+    if job.phase is not Phase.ENDING or e is None:
+        return None
+    ended = (f"cancelled at iteration {job.iteration}" if e.outcome is Phase.CANCELLED
+             else f"iterations over ({e.reason})")
+    return f"{ended}: rendering result images {e.done}/{e.parts}" if e.parts else ended
+
+
+def job_to_pb(job: JobRecord) -> pb.Job:
+    phase = end_phase(job)
+    c = job.counters
+    return pb.Job(
+        name=job.name, spec=spec_to_pb(job), state=STATES[job.phase], owner=job.owner,
+        iteration=job.iteration, loss=job.loss, best_iteration=job.best_iteration,
+        best_loss=job.best_loss, elapsed_seconds=job.elapsed, integrator=job.integrator,
+        integrator_reason=job.integrator_reason, sensors_rendered=job.sensors,
+        nonfinite_gradient_steps=c.nonfinite_gradient_steps, skipped_steps=c.skipped_steps,
+        error=job.error, stop_reason=job.stop_reason, resumed_from=job.resumed_from,
+        create_time=timestamp(job.created), update_time=timestamp(job.updated),
+        notes=job.notes + ([END_PHASE + phase] if phase else []),
+        clamped_components=c.clamped_components, worker=job.worker)
+
+
+def reference_names(job: JobRecord) -> dict[int, str]:
     """Each reference's file name by the sensor it belongs to, for the gains."""
-    return {r.sensor if r.HasField("sensor") else i: r.filename or r.blob
-            for i, r in enumerate(spec.references)}
+    return {r.sensor: r.name for r in job.settings.references}
 
 
-def gains_to_pb(gains: dict[int, np.ndarray], names: dict[int, str]
+def gains_to_pb(gains: dict[int, np.ndarray] | dict[int, list[float]], names: dict[int, str]
                 ) -> list[pb.ReferenceGain]:
     return [pb.ReferenceGain(sensor=s, reference=names.get(s, ""),
                              rgb=np.asarray(g, dtype=np.float32).ravel().tolist())
             for s, g in sorted(gains.items())]
 
 
-def record_to_pb(r: api.IterationRecord, shapes: dict[str, list[int]],
-                 names: dict[int, str] | None = None) -> pb.IterationRecord:
-    """``names``: the reference file names by sensor (reference_names), for the gains."""
+def iteration_to_pb(r: api.IterationRecord, job: JobRecord) -> pb.IterationRecord:
     out = pb.IterationRecord(
         iteration=r.iteration, seconds=r.seconds, loss=r.loss,
-        parameters=values_to_pb(r.values, shapes, None),
+        parameters=arrays_to_pb(r.values, job.shapes),
         errors=[pb.ParameterError(key=k, max_abs=e.max_abs, rmse=e.rmse, relative=e.relative,
                                   psnr=e.psnr, correlation=e.correlation)
                 for k, e in r.errors.items()],
-        gains=gains_to_pb(r.gains, names or {}))
+        gains=gains_to_pb(r.gains, reference_names(job)))
     if r.image_error is not None:
         out.image_error = r.image_error
     return out
 
 
-def record_from_pb(r: pb.IterationRecord) -> api.IterationRecord:
-    return api.IterationRecord(r.iteration, r.seconds, r.loss,
-                               {v.key: np.asarray(v.value, dtype=np.float32)
-                                for v in r.parameters if v.value},
-                               {e.key: api.ParameterError(e.max_abs, e.rmse, e.relative, e.psnr,
-                                                          list(e.correlation))
-                                for e in r.errors})
+def result_to_pb(r: ResultRecord, job: JobRecord) -> pb.JobResult:
+    return pb.JobResult(
+        job=r.job, which=enums.parse(pb.Which, r.which), iteration=r.iteration, loss=r.loss,
+        parameters=values_to_pb(r.values, r.shapes),
+        initial_parameters=values_to_pb(r.initial, r.shapes),
+        images=[image_to_pb(i) for i in r.images],
+        scene_files=[pb.BundleFile(path=f.path, sha256=f.sha256) for f in r.scene_files],
+        scene_file=r.scene_file, unplaced_parameters=r.unplaced,
+        gains=gains_to_pb(r.gains, reference_names(job)))
 
 
-def progress_to_job(job: pb.Job, p: api.Progress) -> None:
-    """The job's figures after a step call."""
-    last = p.records[-1]
-    job.iteration, job.loss = last.iteration + 1, last.loss
-    job.best_iteration = p.best_iteration
-    job.best_loss = p.best_loss if math.isfinite(p.best_loss) else 0.0
-    job.elapsed_seconds = p.seconds
-    counters_to_job(job, p.counters)
+def event_to_pb(event: JobRecord | api.IterationRecord, job: JobRecord) -> pb.JobEvent:
+    """A watcher's event; ``job``: the job as the watcher last saw it (shapes and names for
+    an iteration's values and gains)."""
+    if isinstance(event, JobRecord):
+        return pb.JobEvent(job=job_to_pb(event))
+    return pb.JobEvent(iteration=iteration_to_pb(event, job))
 
 
-def counters_to_job(job: pb.Job, c: api.Counters) -> None:
-    job.nonfinite_gradient_steps = c.nonfinite_gradient_steps
-    job.skipped_steps = c.skipped_steps
-    job.clamped_components = c.clamped_components
+# -- workers ---------------------------------------------------------------------------------
 
-
-def result_to_pb(job: str, r: api.Result, shapes: dict[str, list[int]], scene: pb.Scene,
-                 put_blob: PutBlob, names: dict[int, str] | None = None) -> pb.JobResult:
-    """The result, with the optimized scene as a bundle: the original files, and the new ones
-    next to the main XML. ``names``: the reference file names by sensor, for the gains."""
-    base = scene.main_file.rpartition("/")[0]
-    new = {f"{base}/{path}" if base else path: put_blob(data)
-           for path, data in r.scene_files.items()}
-    out = pb.JobResult(job=job, which=enums.parse(pb.Which, r.which), iteration=r.iteration,
-                       loss=r.loss, parameters=values_to_pb(r.values, shapes, put_blob),
-                       initial_parameters=values_to_pb(r.initial_values, shapes, put_blob),
-                       images=[image_to_pb(i, put_blob) for i in r.images],
-                       unplaced_parameters=r.unplaced, gains=gains_to_pb(r.gains, names or {}))
-    out.scene_files.extend(f for f in scene.files if f.path not in new)
-    out.scene_files.extend(pb.BundleFile(path=p, sha256=b.removeprefix("blobs/"))
-                           for p, b in new.items())
-    out.scene_file = f"{base}/{r.scene_file}" if base else r.scene_file
-    return out
+def worker_to_pb(w: WorkerStatus) -> pb.Worker:
+    return pb.Worker(name=w.name, state=WORKER_STATES[w.state], variant=w.variant,
+                     device=w.device, host=w.host, pid=w.pid, jobs=w.jobs,
+                     job_count=w.job_count, restarts=w.restarts, last_exit=w.last_exit,
+                     memory_bytes=w.memory, memory_limit_bytes=w.memory_limit,
+                     threads=w.threads, node=w.node)
