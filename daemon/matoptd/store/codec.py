@@ -83,7 +83,9 @@ def _dataclass(cls: type) -> Decoder:
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     parts: dict[str, Decoder] = {}
 
-    def decode(v: dict) -> Any:
+    def decode(v: dict | Any) -> Any:
+        if isinstance(v, cls):  # decoded already (a part the caller keeps decoded)
+            return v
         if not parts:  # built on first use: a record may refer to its own type
             parts.update({name: decoder(hints[name]) for name in fields})
         return cls(**{name: parts[name](x) for name, x in v.items() if name in fields})

@@ -9,6 +9,7 @@ release is brought to this form when the store opens (``migrate``).
 
 from __future__ import annotations
 
+import collections
 import json
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -16,6 +17,7 @@ from typing import Iterable, Iterator
 from ..engine_api import IterationRecord, ParameterInfo
 from ..errors import NotFound
 from ..records import JobRecord, Phase, ResultRecord, SceneRecord
+from ..settings import JobSettings
 from . import blob_refs, codec, migrate
 from .blobs import Blobs
 from .checkpoints import Checkpoints
@@ -23,6 +25,7 @@ from .database import Database
 from .disk import Disk
 
 CHUNK = 1 << 20  # bytes per message when a blob is streamed
+SETTINGS_KEPT = 4096  # jobs whose settings stay decoded (status calls read them again and again)
 
 
 class Store:
@@ -34,6 +37,9 @@ class Store:
         self.checkpoints = Checkpoints(self.root / "checkpoints", self.disk)
         self.blobs = Blobs(self.root / "blobs", self.db, self.disk, quota, self._uses)
         migrate.upgrade(self.db, self.blobs, self.checkpoints)
+        # A job's settings never change once written: each is decoded once and shared (they
+        # are frozen; nothing changes them in place).
+        self._settings: collections.OrderedDict[str, JobSettings] = collections.OrderedDict()
         if "blob_owners" not in self.db.tables():
             self.blobs.adopt(self._uses(None))
 
@@ -97,20 +103,21 @@ class Store:
                         (job.phase.value, json.dumps(status), job.name))
 
     def job_by_request(self, owner: str, request_id: str) -> JobRecord | None:
-        rows = self.db.query("SELECT settings, record FROM jobs WHERE owner=? AND "
+        rows = self.db.query("SELECT name, settings, record FROM jobs WHERE owner=? AND "
                              "request_id=?", (owner, request_id))
-        return _job(*rows[0]) if rows else None
+        return self._job(*rows[0]) if rows else None
 
     def get_job(self, name: str, owner: str | None = None) -> JobRecord:
         """A job by name; with ``owner``, another user's job is NOT_FOUND, as if absent."""
-        rows = self.db.query("SELECT settings, record, owner FROM jobs WHERE name=?", (name,))
-        if not rows or (owner is not None and rows[0][2] != owner):
+        rows = self.db.query("SELECT name, settings, record, owner FROM jobs WHERE name=?",
+                             (name,))
+        if not rows or (owner is not None and rows[0][3] != owner):
             raise NotFound(f"job '{name}' not found")
-        return _job(rows[0][0], rows[0][1])
+        return self._job(*rows[0][:3])
 
     def list_jobs(self, owner: str | None, offset: int = 0, limit: int = -1,
                   phases: Iterable[Phase] = ()) -> list[JobRecord]:
-        sql, args = "SELECT settings, record FROM jobs WHERE 1=1", []
+        sql, args = "SELECT name, settings, record FROM jobs WHERE 1=1", []
         if owner is not None:
             sql += " AND owner=?"
             args.append(owner)
@@ -119,7 +126,7 @@ class Store:
             sql += f" AND phase IN ({','.join('?' * len(phases))})"
             args += phases
         sql += " ORDER BY seq LIMIT ? OFFSET ?"
-        return [_job(*r) for r in self.db.query(sql, (*args, limit, offset))]
+        return [self._job(*r) for r in self.db.query(sql, (*args, limit, offset))]
 
     def count_jobs(self, owner: str, phases: Iterable[Phase]) -> int:
         values = [p.value for p in phases]
@@ -132,6 +139,7 @@ class Store:
             for table, col in (("jobs", "name"), ("iterations", "job"), ("results", "job")):
                 db.execute(f"DELETE FROM {table} WHERE {col}=?", (name,))
         self.checkpoints.delete(name)
+        self._settings.pop(name, None)
 
     # -- histories and results --------------------------------------------------------------
 
@@ -175,14 +183,18 @@ class Store:
         for job, text in self.db.query("SELECT job, record FROM results WHERE job IN "
                                        "(SELECT name FROM jobs" + where + ")", args):
             results.setdefault(job, []).append(codec.loads(ResultRecord, text))
-        for settings, status in self.db.query("SELECT settings, record FROM jobs" + where,
-                                              args):
-            job = _job(settings, status)
+        for name, settings, status in self.db.query(
+                "SELECT name, settings, record FROM jobs" + where, args):
+            job = self._job(name, settings, status)
             yield job.owner, job.name, blob_refs.job_blobs(job, results.get(job.name, ()))
 
-
-def _job(settings: str, status: str) -> JobRecord:
-    record = json.loads(status)
-    record["settings"] = json.loads(settings)
-    return codec.decoder(JobRecord)(record)
+    def _job(self, name: str, settings: str, status: str) -> JobRecord:
+        kept = self._settings.get(name)
+        if kept is None:
+            kept = self._settings[name] = codec.loads(JobSettings, settings)
+            if len(self._settings) > SETTINGS_KEPT:
+                self._settings.popitem(last=False)
+        record = json.loads(status)
+        record["settings"] = kept
+        return codec.decoder(JobRecord)(record)
 
