@@ -43,6 +43,7 @@ from .scheduling.recovery import Recovery
 from .scheduling.scheduler import Scheduler
 from .scheduling.state import State
 from .server import admission, app
+from .server.backend import Backend
 from .server.auth import Authenticator, load_tokens
 from .store.store import Store
 from .workers import devices
@@ -176,7 +177,7 @@ async def serve(args: argparse.Namespace) -> None:
     else:
         lanes = await asyncio.to_thread(start_workers, args, store)
 
-    backend = app.Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
+    backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
     server, health_servicer, names = app.build(backend, Authenticator(tokens))
     if args.tls_cert:

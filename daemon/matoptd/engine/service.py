@@ -25,8 +25,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import film_filter
-from . import diagnosis, images, parameters, scene as scenes, scene_export
+from . import diagnosis, film_filter, images, parameters, scene as scenes, scene_export
 from .integrator import medium_notes
 from .optimize import Best, Config, Optimization, Reference, Setting
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from dataclasses import dataclass, field
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -16,13 +15,15 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from ..scheduling.control import JobControl
-from ..scheduling.events import Events
 from ..scheduling.lanes import Lanes
-from ..store.store import Store
-from . import admission, reflection
+from . import reflection
 from .auth import Authenticator
+from .backend import Backend
+from .blob_service import BlobService
+from .info_service import ServerService
 from .interceptors import Authentication, Errors
+from .job_service import JobService
+from .scene_service import SceneService
 
 log = logging.getLogger("matoptd.server")
 
@@ -30,31 +31,10 @@ MAX_MESSAGE = 64 << 20
 SERVICES = ("BlobService", "SceneService", "JobService", "ServerService")
 
 
-@dataclass
-class Backend:
-    """What the handlers reach: the store (status calls are served from it), the lanes (scene
-    tasks, the workers), job control and the jobs' watchers."""
-
-    store: Store
-    lanes: Lanes
-    control: JobControl
-    events: Events
-    limits: admission.Limits = admission.Limits()
-    tasks: admission.TaskSlots = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.tasks = admission.TaskSlots(self.limits)
-
-
 def build(backend: Backend, auth: Authenticator) -> tuple[grpc.aio.Server,
                                                           health.aio.HealthServicer, list[str]]:
     """The server with every service added; returns it, its health servicer and the names
     health reports on ("" for the whole server)."""
-    from .blob_service import BlobService
-    from .info_service import ServerService
-    from .job_service import JobService
-    from .scene_service import SceneService
-
     names = [pb.DESCRIPTOR.services_by_name[n].full_name for n in SERVICES]
     server = grpc.aio.server(
         interceptors=[Authentication(auth, names), Errors(names)],

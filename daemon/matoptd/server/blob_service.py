@@ -9,7 +9,7 @@ from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 from ..errors import InvalidArgument
 from ..store.store import CHUNK
-from .app import Backend
+from .backend import Backend
 from .convert import blob_to_pb
 from .interceptors import caller
 from .paging import next_token, page, resource

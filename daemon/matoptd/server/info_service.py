@@ -7,7 +7,7 @@ from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from .app import Backend
+from .backend import Backend
 from .convert import worker_to_pb
 from .interceptors import caller
 

@@ -17,7 +17,7 @@ from matopt_api.v1 import matopt_pb2_grpc as rpc
 from ..errors import FailedPrecondition
 from ..records import ACTIVE, JobRecord, Phase
 from . import admission, convert, job_spec
-from .app import Backend
+from .backend import Backend
 from .interceptors import caller
 from .paging import next_token, page, resource
 from .scene_service import films

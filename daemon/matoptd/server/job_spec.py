@@ -14,9 +14,10 @@ from matopt_api.v1 import matopt_pb2 as pb
 
 from .. import range_notes
 from ..engine_api import ParameterInfo
-from ..errors import InvalidArgument
+from ..errors import FailedPrecondition, InvalidArgument
 from ..records import ResultRecord, SceneRecord
-from ..settings import JobSettings, ParameterSetting, ReferenceInput, Values, read_values
+from ..settings import (JobSettings, ParameterSetting, ReferenceInput, SceneInput, Values,
+                        read_values)
 from .convert import given_values
 
 PARAMETER_KINDS_SMOOTHED = ("texture", "volume_grid")
@@ -49,11 +50,9 @@ def build(spec: pb.JobSpec, scene: SceneRecord, params: dict[str, ParameterInfo]
           start: StartFrom | None = None, max_samples: int = 0) -> Built:
     """``read``: digest -> bytes of the caller's blobs (references and .npy values must be
     theirs); ``max_samples``: the daemon's limit on one render call."""
-    if scene.inputs is None:
-        raise InvalidArgument(f"scene '{scene.name}' was made by an older matoptd; create it "
-                              "again")
+    inputs = loadable(scene)
     given = _settings(spec)
-    references = _references(spec, scene, read)
+    references = _references(spec, scene)
     notes: list[str] = []
     parameters = [_parameter(p, spec, scene, params, read, start, notes)
                   for p in _selected(spec, scene, params)]
@@ -68,7 +67,7 @@ def build(spec: pb.JobSpec, scene: SceneRecord, params: dict[str, ParameterInfo]
         values = given_values(t.value, t.blob) or Values()
         _decoded(values, t.blob, what, params[t.key], read)
         truth[t.key] = values
-    return Built(JobSettings(scene=scene.inputs, references=references, parameters=parameters,
+    return Built(JobSettings(scene=inputs, references=references, parameters=parameters,
                              truth=truth, max_samples=max_samples, **given), notes)
 
 
@@ -99,7 +98,7 @@ def _settings(spec: pb.JobSpec) -> dict:
     return given
 
 
-def _references(spec: pb.JobSpec, scene: SceneRecord, read) -> list[ReferenceInput]:
+def _references(spec: pb.JobSpec, scene: SceneRecord) -> list[ReferenceInput]:
     count = len(scene.sensors)
     refs = list(spec.references)
     if spec.fit_exposure and not refs:
@@ -199,6 +198,14 @@ def _decoded(values: Values, blob: str, what: str, info: ParameterInfo, read):
 
 def _size(info: ParameterInfo) -> int:
     return math.prod(info.shape) if info.shape else 1
+
+
+def loadable(scene: SceneRecord) -> SceneInput:
+    """What a worker loads of the scene; scenes made before the daemon kept it cannot be."""
+    if scene.inputs is None:
+        raise FailedPrecondition(f"scene '{scene.name}' was made by an older matoptd; create "
+                                 "it again")
+    return scene.inputs
 
 
 def listed(key: str, params: dict[str, ParameterInfo], scene: SceneRecord) -> ParameterInfo:

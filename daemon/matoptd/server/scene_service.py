@@ -19,21 +19,14 @@ from ..records import SceneRecord
 from ..settings import SceneInput
 from ..store.outputs import keep_image
 from . import admission, bundles, convert
-from .app import Backend
+from .backend import Backend
 from .interceptors import caller
-from .job_spec import listed
+from .job_spec import listed, loadable
 from .paging import next_token, page, resource
 
 
 def films(scene: SceneRecord) -> dict[int, tuple[int, int]]:
     return {s.index: (s.width, s.height) for s in scene.sensors}
-
-
-def loadable(scene: SceneRecord) -> SceneInput:
-    if scene.inputs is None:
-        raise FailedPrecondition(f"scene '{scene.name}' was made by an older matoptd; create "
-                                 "it again")
-    return scene.inputs
 
 
 class SceneService(rpc.SceneServiceServicer):
