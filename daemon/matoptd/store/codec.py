@@ -32,20 +32,31 @@ def loads(cls: type, text: str) -> Any:
     return decoder(cls)(json.loads(text))
 
 
+PLAIN = frozenset({str, int, float, bool, type(None)})
+
+
 def encode(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj):
-        return {f.name: encode(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    t = type(obj)
+    if t in PLAIN:  # first: most of a record is plain values
+        return obj
+    if t is list or t is tuple:
+        return [encode(v) for v in obj]
+    if t is dict:
+        return {k if type(k) is str else str(k): encode(v) for k, v in obj.items()}
     if isinstance(obj, enum.Enum):
         return obj.value
     if isinstance(obj, np.ndarray):
         return obj.tolist()
-    if isinstance(obj, dict):
-        return {str(k): encode(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [encode(v) for v in obj]
+    if dataclasses.is_dataclass(obj):
+        return {name: encode(getattr(obj, name)) for name in _names(t)}
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
+
+
+@functools.cache
+def _names(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 @functools.cache

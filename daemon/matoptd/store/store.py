@@ -10,6 +10,7 @@ release is brought to this form when the store opens (``migrate``).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -87,20 +88,16 @@ class Store:
     # -- jobs -------------------------------------------------------------------------------
 
     def add_job(self, job: JobRecord, request_id: str | None) -> None:
-        status = codec.encode(job)
-        settings = status.pop("settings")
         self.db.execute(
             "INSERT INTO jobs (name, owner, request_id, seq, phase, settings, record) VALUES "
             "(?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM jobs), ?, ?, ?)",
-            (job.name, job.owner, request_id or None, job.phase.value, json.dumps(settings),
-             json.dumps(status)))
+            (job.name, job.owner, request_id or None, job.phase.value,
+             codec.dumps(job.settings), _status(job)))
 
     def put_job(self, job: JobRecord) -> None:
         """The job's record as it stands (its settings were written by ``add_job``)."""
-        status = codec.encode(job)
-        del status["settings"]
         self.db.execute("UPDATE jobs SET phase=?, record=? WHERE name=?",
-                        (job.phase.value, json.dumps(status), job.name))
+                        (job.phase.value, _status(job), job.name))
 
     def job_by_request(self, owner: str, request_id: str) -> JobRecord | None:
         rows = self.db.query("SELECT name, settings, record FROM jobs WHERE owner=? AND "
@@ -189,6 +186,7 @@ class Store:
             yield job.owner, job.name, blob_refs.job_blobs(job, results.get(job.name, ()))
 
     def _job(self, name: str, settings: str, status: str) -> JobRecord:
+        """The record of a row: its settings decoded once (see ``_settings``)."""
         kept = self._settings.get(name)
         if kept is None:
             kept = self._settings[name] = codec.loads(JobSettings, settings)
@@ -198,3 +196,9 @@ class Store:
         record["settings"] = kept
         return codec.decoder(JobRecord)(record)
 
+
+
+def _status(job: JobRecord) -> str:
+    """The record without its settings, which have a column of their own."""
+    return codec.dumps({f.name: getattr(job, f.name) for f in dataclasses.fields(job)
+                        if f.name != "settings"})
