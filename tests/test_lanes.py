@@ -86,6 +86,22 @@ def test_a_worker_lost_mid_iteration_costs_the_job_only_what_ran_since_its_check
                for n in done.notes), done.notes
 
 
+def test_a_worker_lost_in_the_end_phase_still_gives_the_results_of_the_last_iteration():
+    d = Daemon()
+    d.control.create(job("a", iterations=35, sensors=2), None)
+
+    def die_rendering_results(method, args):
+        if method == "result_images" and not d.worker.restarts:
+            d.worker.die()
+    d.worker.before = die_rendering_results
+    d.run()
+    done = d.store.get_job("jobs/a")
+    assert done.phase is Phase.SUCCEEDED and done.iteration == 35
+    assert d.engine.started[-1] == ("jobs/a", 35)  # loaded again as its iterations left it
+    assert d.store.results[("jobs/a", "last")].iteration == 34
+    assert [i.sensor for i in d.store.results[("jobs/a", "last")].images] == [0, 1]
+
+
 def test_a_job_that_takes_its_worker_down_twice_fails_and_says_how():
     d = Daemon()
     d.control.create(job("bad", iterations=60), None)

@@ -232,7 +232,7 @@ class Lane:
         # compute their own (for dual_buffer the best is a windowed mean, not a record's loss).
         self.state.events.publish(record.name, [*progress.records, snapshot])
         if progress.done:
-            self._end(record, action, Phase.SUCCEEDED, progress.stop_reason,
+            self._end(engine, record, action, Phase.SUCCEEDED, progress.stop_reason,
                       len(progress.records))
             return
         now = self.state.clock.monotonic()
@@ -264,13 +264,19 @@ class Lane:
         engine.release(record.name)
 
     def _cancel(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
-        self._end(record, action, Phase.CANCELLED, "cancelled")
+        self._end(engine, record, action, Phase.CANCELLED, "cancelled")
 
-    def _end(self, record: JobRecord, action: Action, outcome: Phase, reason: str,
-             iterations: int = 0) -> None:
+    def _end(self, engine: EngineClient, record: JobRecord, action: Action, outcome: Phase,
+             reason: str, iterations: int = 0) -> None:
         """The iterations are over: the end phase begins, one "results" action per rendered
-        sensor (scheduled like iterations, so other jobs go on between them), then "finish"."""
+        sensor (scheduled like iterations, so other jobs go on between them), then "finish".
+        A checkpoint first: a job whose worker is lost in its end phase is loaded again as its
+        iterations left it, so its results are still those of its best and last iterations."""
+        if record.iteration:
+            self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
         with self.state.lock:
+            if record.iteration:
+                record.checkpoint = record.iteration
             self.scheduler.done(action, iterations)
             self.scheduler.end(record.name, outcome, reason,
                                len(record.sensors) if record.iteration else 0)
