@@ -8,10 +8,13 @@ import hashlib
 import json
 import sqlite3
 
+import pytest
+
 from matopt_api.v1 import matopt_pb2 as pb
 
 import legacy_store
 from conftest import Daemon, Stubs, wait_state
+from matoptd.store.store import Store
 from test_faults import wait_iteration
 
 # The Cornell box's true wall colours (mitsuba.cornell_box()), as ground truth.
@@ -122,3 +125,17 @@ def test_a_data_dir_of_the_protobuf_release_comes_back_whole_and_resumes(tmp_pat
     finally:
         stubs.close()
         daemon.stop()
+
+
+def test_a_data_dir_of_a_newer_version_is_refused_untouched(tmp_path):
+    Store(tmp_path).close()
+    db = sqlite3.connect(tmp_path / "matoptd.sqlite3")
+    db.execute("PRAGMA user_version=3")
+    db.commit()
+    db.close()
+    with pytest.raises(RuntimeError) as err:
+        Store(tmp_path)
+    assert str(err.value) == ("the data dir's database is of version 3, made by a newer "
+                              "matoptd; this one reads up to version 2")
+    db = sqlite3.connect(tmp_path / "matoptd.sqlite3")
+    assert db.execute("PRAGMA user_version").fetchone() == (3,)
