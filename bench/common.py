@@ -242,7 +242,7 @@ def xml_scene(client: mc.Client, work: Path, xml: str, name: str,
 def with_ids(xml: str) -> str:
     """The XML with the ids the daemon gives unnamed top-level objects, so that a plain
     Mitsuba script sees the same parameter keys as a job."""
-    from matoptd.scenes import assign_ids  # pure XML, no Mitsuba
+    from matoptd.server.bundles import assign_ids  # pure XML, no Mitsuba
     root = ET.fromstring(xml)
     assign_ids(root)
     return ET.tostring(root, encoding="unicode")

@@ -61,7 +61,7 @@ def mitsuba(variant: str):
     """
     import os
     if "DRJIT_LIBLLVM_PATH" not in os.environ and variant.startswith("llvm"):
-        from matoptd.devices import find_libllvm
+        from matoptd.workers.devices import find_libllvm
         found = find_libllvm()
         if found:
             os.environ["DRJIT_LIBLLVM_PATH"] = found

@@ -1,14 +1,16 @@
 """Scheduling: the scheduler alone, with many users, jobs and workers, in simulated time.
 
-What it models. ``matoptd.scheduler.Scheduler`` (the real class, unchanged) decides for every
+What it models. ``matoptd.scheduling.scheduler.Scheduler`` (the real class) decides for every
 free worker what it does next; here fake workers "run" each action by letting simulated time
 pass, in a discrete-event simulation: an event queue of actions in flight, ordered by when
 they end, and a simulated clock handed to ``Scheduler(clock=...)``. The calls mirror the
-runner's lanes (``runner.py``: ``_lane``, ``_next``, ``_do``, ``_load``, ``_step``,
-``_unload``, ``_finish``): every worker asks ``next()`` when free; a load, an evict or a step
+lanes (``scheduling/lanes.py``: ``Lane.run``, ``_next``, ``do``, ``_load``, ``_step``,
+``_evict``, ``_finish``): every worker asks ``next()`` when free; a load, an evict or a step
 ends with ``done(action)`` (a step with its iterations); the step that reaches a job's
-iteration budget also makes the job's results and ends with ``done(..., finished=True)``; and,
-as the runner's ``notify_all`` wakes every waiting lane after each ``done``, every idle
+iteration budget also makes the job's results in the same call and ends the job (``end``,
+then ``finish``: the daemon's end phase, a "results" action per sensor and a "finish", is
+modelled as one cost); and, as the lanes' ``notify_all`` wakes every waiting lane after each
+``done``, every idle
 worker asks ``next()`` again after each completed action. Simulated costs: a load 0.5 s, an
 evict 0.2 s, a job's results 0.3 s, a step ``n`` iterations at the job's own cost per
 iteration (0.05 to 0.5 s), each +-10 % noise (which also keeps workers from finishing in
@@ -24,7 +26,7 @@ or the same as the user with one (per-user fairness, what the scheduler promises
 Reported, at 8, 64 and 512 workers, several seeds each:
 - dispatch latency: the real wall time (``time.perf_counter``) of each ``next()`` call that
   handed out an action, p50 / p99 / max (target p99 < 10 ms at 64 workers). It runs under the
-  runner's lock, so it delays every lane. Calls that found nothing to do (an idle worker
+  lanes' lock, so it delays every lane. Calls that found nothing to do (an idle worker
   woken by someone else's ``done``) are counted apart (most of them estimated rather than
   made: see ``Simulation.wake``); so is the scheduler's whole time (``next`` and ``done``)
   per simulated second: the share of one core it would take at the simulated pace, which
@@ -45,7 +47,7 @@ Reported, at 8, 64 and 512 workers, several seeds each:
   iterations spread evenly over the workers, or the longest job alone).
 
 What it leaves out: Ray, the daemon, Mitsuba, gRPC, the store; scene tasks, pauses, cancels,
-lost workers; the runner's periodic checkpoints during steps, and its 1 s poll of idle lanes
+lost workers; the lanes' periodic checkpoints during steps, and their 1 s poll of idle lanes
 (nothing changes between events, so that poll would find what the last wake found). All
 jobs arrive at time 0 (a burst, as after a daemon restart with a full queue). Latency is
 measured in this process with the simulation's own bookkeeping around it, on a machine shared
@@ -64,9 +66,12 @@ from dataclasses import dataclass, field
 
 import common
 from common import Result, Settings, Target
-from matoptd.scheduler import SLICE_SECONDS, STEP_SECONDS, Action, Scheduler
+from matoptd.records import JobRecord, Phase
+from matoptd.scheduling.scheduler import SLICE_SECONDS, STEP_SECONDS, Action, Scheduler
+from matoptd.settings import JobSettings, SceneInput
 
 NEEDS_DAEMON = False       # run.py: a pure simulation, no matoptd to start
+SETTINGS = JobSettings(SceneInput("", "", {}, {}, ""), [], [])  # no job here ever loads
 
 LOAD, EVICT, RESULTS = 0.5, 0.2, 0.3  # simulated seconds
 ITERATION = (0.05, 0.5)    # simulated seconds per iteration, a job's own (log-uniform)
@@ -200,7 +205,7 @@ class Run:
 
     def lock_load(self) -> float:
         """The scheduler's wall time (every next() and done()) per simulated second: the
-        share of one core it takes, under the runner's lock, at the simulated pace."""
+        share of one core it takes, under the lanes' lock, at the simulated pace."""
         busy = (sum(self.decisions) + sum(self.polls) + self.polls_counted
                 + sum(self.done_calls))
         return busy / self.makespan
@@ -236,7 +241,7 @@ class Simulation:
             self.s.add_worker(f"w{i:03d}")
             self.s.worker_ready(f"w{i:03d}")
         for j in jobs:
-            self.s.add_job(j.name, j.user)
+            self.s.add_job(JobRecord(j.name, j.user, "scenes/sim", SETTINGS))
 
     def simulate(self) -> Run:
         for w in list(self.s.workers):  # every lane starts: all ask at time 0
@@ -254,7 +259,7 @@ class Simulation:
         return self.run
 
     def wake(self) -> None:
-        """Every idle lane asks again, as the runner's ``notify_all`` after a ``done`` makes
+        """Every idle lane asks again, as the lanes' ``notify_all`` after a ``done`` makes
         it. An idle worker holds no job here (a loaded job always wants its next step), and
         for a worker holding none ``next()`` depends only on the jobs, not on which worker
         asks, and changes nothing when it finds nothing: once one such lane found nothing,
@@ -311,7 +316,7 @@ class Simulation:
     def cost(self, flying: InFlight) -> float:
         """Simulated seconds of the action; a step also settles how many iterations it runs
         and whether it is the job's last (then the results are made in the same call, as
-        the runner's ``_step`` calls ``_finish``)."""
+        the daemon's end phase follows the last step: modelled as one cost)."""
         action, noise = flying.action, self.rng.uniform(1 - NOISE, 1 + NOISE)
         if action.kind == "load":
             return LOAD * noise
@@ -326,15 +331,15 @@ class Simulation:
         return (flying.iterations * job.cost + results) * noise
 
     def complete(self, worker: str) -> None:
-        """The worker's action ended now: ``done`` as the runner calls it."""
+        """The worker's action ended now: ``done`` as a lane calls it."""
         flying = self.flying.pop(worker)
         self.rates = None
         action = flying.action
         began = time.perf_counter()
-        if action.kind == "step":
-            self.s.done(action, iterations=flying.iterations, finished=flying.finished)
-        else:
-            self.s.done(action)
+        self.s.done(action, iterations=flying.iterations)
+        if flying.finished:  # its results were made in the same call (see ``cost``)
+            self.s.end(action.job, Phase.SUCCEEDED, "iterations", 0)
+            self.s.finish(action.job)
         self.run.done_calls.append(time.perf_counter() - began)
         if action.kind != "step":
             return
@@ -455,7 +460,7 @@ def targets(size: Size, runs: dict[int, list[Run]]) -> list[Target]:
             f"{100 * TARGET_SHARE:g} %)", common.median(devs) <= TARGET_SHARE))
     loads = {w: common.median([r.lock_load() for r in rs]) for w, rs in runs.items()}
     out.append(Target("scheduler's time (next, done) per simulated second: share of one core "
-                      "under the runner's lock (no target)",
+                      "under the lanes' lock (no target)",
                       ", ".join(f"{w} workers {x:.2f}" for w, x in loads.items()), None))
     return out
 
@@ -463,7 +468,7 @@ def targets(size: Size, runs: dict[int, list[Run]]) -> list[Target]:
 def lines(size: Size, runs: dict[int, list[Run]], rows: list[dict]) -> list[str]:
     counts = sorted(next(iter(runs.values()))[0].jobs.values())
     out = [
-        f"A discrete-event simulation of `matoptd.scheduler.Scheduler` (unchanged) with fake "
+        f"A discrete-event simulation of `matoptd.scheduling.scheduler.Scheduler` with fake "
         f"workers in simulated time: {size.jobs} jobs of {size.users} users (jobs per user "
         f"{counts[0]} to {counts[-1]}, median {common.median(counts):g}; every user "
         f"{WORK_PER_USER[0] * size.base_work:g} to {WORK_PER_USER[1] * size.base_work:g} s of "

@@ -40,7 +40,7 @@ import common
 from common import Result, Settings, Target
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
-from matoptd.scheduler import SLICE_SECONDS
+from matoptd.scheduling.scheduler import SLICE_SECONDS
 
 RES, SPP = 32, 4
 USERS, JOBS_PER_USER = 8, 5

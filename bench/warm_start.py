@@ -38,7 +38,7 @@ def fresh_process(variant: str, ref_path: Path, cache: Path) -> dict[str, float]
     """Runs plain.py --first-iteration in a new interpreter; times from just before exec."""
     env = dict(os.environ, DRJIT_CACHE_DIR=str(cache))
     if variant.startswith("llvm") and "DRJIT_LIBLLVM_PATH" not in env:
-        from matoptd.devices import find_libllvm
+        from matoptd.workers.devices import find_libllvm
         env["DRJIT_LIBLLVM_PATH"] = find_libllvm() or ""
     command = [sys.executable, str(Path(__file__).with_name("plain.py")), "--first-iteration",
                "--variant", variant, "--xml", str(common.CORNELL_XML), "--reference",

@@ -54,7 +54,7 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".${extras:+[$extras]}"
 if wants daemon; then
-    llvm=$(.venv/bin/python -c "from matoptd.devices import find_libllvm; print(find_libllvm() or '')")
+    llvm=$(.venv/bin/python -c "from matoptd.workers.devices import find_libllvm; print(find_libllvm() or '')")
     echo "setup: ready in .venv (Dr.Jit's CPU backend will use ${llvm:-no libLLVM >= 16 found})"
 else
     echo "setup: ready in .venv (extras: ${extras:-none})"

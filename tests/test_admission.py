@@ -6,21 +6,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from matoptd import admission, engine_api as api
-from matoptd.admission import Limits
+from matoptd import engine_api as api
 from matoptd.errors import InvalidArgument, ResourceExhausted
-from matoptd.image_headers import ImageHeader
+from matoptd.server import admission
+from matoptd.server.admission import Limits
+from matoptd.server.image_headers import ImageHeader
+from matoptd.settings import JobSettings, ReferenceInput, SceneInput
 
 from scenes import exr, png
 from test_image_headers import png_header_only
 
-SCENE = api.SceneInput("k", "s.xml", {}, {}, "s.xml")
+SCENE = SceneInput("k", "s.xml", {}, {}, "s.xml")
 FILMS = {0: (64, 48), 1: (32, 32)}
 
 
-def settings(refs: dict[int, str], **kw) -> api.JobSettings:
-    return api.JobSettings(SCENE, [api.ReferenceInput(s, f"sha{s}", name)
-                                   for s, name in refs.items()], [], **kw)
+def settings(refs: dict[int, str], **kw) -> JobSettings:
+    return JobSettings(SCENE, [ReferenceInput(s, f"sha{s}", name)
+                               for s, name in refs.items()], [], **kw)
 
 
 def rgb(width: int, height: int) -> ImageHeader:
@@ -36,8 +38,8 @@ def test_a_job_renders_each_referenced_sensor_at_its_reference_aspect():
     assert est.film_bytes == (96 * 48 + 32 * 32) * 16
 
 
-def test_resolution_sets_the_height_of_every_film():
-    est = admission.job_estimate(settings({1: "wide.png"}, spp=2, resolution=100), FILMS,
+def test_film_height_sets_the_height_of_every_film():
+    est = admission.job_estimate(settings({1: "wide.png"}, spp=2, film_height=100), FILMS,
                                  {1: rgb(300, 100)})
     assert [(r.width, r.height) for r in est.renders] == [(300, 100)]
     assert "film_height 100" in est.renders[0].film_from
@@ -91,13 +93,13 @@ def test_2_to_the_32_samples_can_never_render():
 
 
 def test_a_film_side_over_the_limit_is_invalid_and_says_why_it_is_that_large():
-    est = admission.job_estimate(settings({0: "wide.png"}, resolution=16), FILMS,
+    est = admission.job_estimate(settings({0: "wide.png"}, film_height=16), FILMS,
                                  {0: rgb(100000, 1)})
     message = refused(InvalidArgument, admission.check, est, Limits())
     assert "sensor 0 would render a 1600000x16 px film" in message
     assert "reference 'wide.png' (100000x1 px)" in message
     assert "at most 8,192 px on a side (matoptd --max-film-side)" in message
-    tall = admission.job_estimate(settings({1: "a.png"}, resolution=20000), FILMS,
+    tall = admission.job_estimate(settings({1: "a.png"}, film_height=20000), FILMS,
                                   {1: rgb(32, 32)})
     message = refused(InvalidArgument, admission.check, tall, Limits())
     assert "20000x20000 px film (from film_height 20000" in message

@@ -18,7 +18,9 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
-from matoptd.store import Store
+from matoptd.records import BundleFile, ImageRef, JobRecord, ResultRecord, SceneRecord
+from matoptd.settings import JobSettings, ReferenceInput, SceneInput
+from matoptd.store.store import Store
 from scenes import camera, upload
 
 USERS = {**TOKENS, "carol": "carol-token-0123456789"}
@@ -310,17 +312,16 @@ def test_a_data_dir_from_before_owners_gives_each_user_what_their_work_names(tmp
     """Upgrading keeps every user's scenes, references and results reachable; an upload that
     nothing names is nobody's until someone uploads it again."""
     store = Store(tmp_path)
-    xml = bare(store.put_blob(b"<scene/>", "alice"))
-    ref, out, orphan = (bare(store.put_blob(data, "alice"))
+    xml = store.blobs.put(b"<scene/>", "alice")
+    ref, out, orphan = (store.blobs.put(data, "alice")
                         for data in (b"reference", b"result image", b"never used"))
-    store.add_scene("alice", None, pb.Scene(name="scenes/s", files=[
-        pb.BundleFile(path="s.xml", sha256=xml)]), pb.ListSceneParametersResponse(),
-        json.dumps({"main_file": "s.xml", "files": {"s.xml": xml}, "overrides": {},
-                    "display": "s.xml"}))
-    store.add_job(pb.Job(name="jobs/j", owner="bob", spec=pb.JobSpec(
-        scene="scenes/s", references=[pb.Reference(blob=f"blobs/{ref}")])), None)
-    store.put_result(pb.JobResult(job="jobs/j", which=pb.WHICH_BEST,
-                                  images=[pb.Image(exr_blob=f"blobs/{out}")]))
+    inputs = SceneInput.of("s.xml", {"s.xml": xml}, {}, "s.xml")
+    store.add_scene(SceneRecord("scenes/s", "alice", "s", "s.xml", [BundleFile("s.xml", xml)],
+                                {}, [], [], False, 0, inputs), [], None)
+    store.add_job(JobRecord("jobs/j", "bob", "scenes/s", JobSettings(
+        inputs, [ReferenceInput(0, ref, "ref.png")], [])), None)
+    store.put_result(ResultRecord("jobs/j", "best", 0, 0.0, {}, {}, {},
+                                  [ImageRef(0, "optimized", 1, 1, out, "")], [], "", []))
     store.close()
     db = sqlite3.connect(tmp_path / "matoptd.sqlite3")
     db.execute("DROP TABLE blob_owners")  # as a data dir made before blobs had owners
@@ -328,12 +329,13 @@ def test_a_data_dir_from_before_owners_gives_each_user_what_their_work_names(tmp
     db.close()
 
     again = Store(tmp_path)
-    assert [again.owns(u, xml) for u in ("alice", "bob")] == [True, False]
-    assert [again.owns(u, s) for u in ("alice", "bob") for s in (ref, out)] == [False, False,
-                                                                                True, True]
-    assert not again.owns("alice", orphan) and (tmp_path / "blobs" / orphan[:2] / orphan).exists()
-    assert again.usage("bob") == len(b"reference") + len(b"result image")
-    assert again.blobs_in_use("bob") == {ref: ["jobs/j"], out: ["jobs/j"]}
+    assert [again.blobs.owns(u, xml) for u in ("alice", "bob")] == [True, False]
+    assert [again.blobs.owns(u, s) for u in ("alice", "bob") for s in (ref, out)] == [
+        False, False, True, True]
+    assert not again.blobs.owns("alice", orphan)
+    assert (tmp_path / "blobs" / orphan[:2] / orphan).exists()
+    assert again.blobs.usage("bob") == len(b"reference") + len(b"result image")
+    assert again.blobs.in_use("bob") == {ref: ["jobs/j"], out: ["jobs/j"]}
     again.close()
 
 

@@ -3,33 +3,38 @@ changes never do. Pure logic, no daemon."""
 
 from __future__ import annotations
 
-from matopt_api.v1 import matopt_pb2 as pb
-from matoptd.events import EventQueue
+from dataclasses import replace
+
+from matoptd.engine_api import IterationRecord
+from matoptd.records import JobRecord, Phase
+from matoptd.scheduling.events import EventQueue
+from matoptd.settings import JobSettings, SceneInput
+
+JOB = JobRecord("jobs/a", "alice", "scenes/s", JobSettings(SceneInput("", "", {}, {}, ""), [], []))
 
 
-def _iteration(i: int) -> pb.JobEvent:
-    return pb.JobEvent(iteration=pb.IterationRecord(iteration=i))
+def _iteration(i: int) -> IterationRecord:
+    return IterationRecord(i, 0.0, 0.0, {})
 
 
-def _state(state: int) -> pb.JobEvent:
-    return pb.JobEvent(job=pb.Job(name="jobs/a", state=state))
+def _state(phase: Phase) -> JobRecord:
+    return replace(JOB, phase=phase)
 
 
 def _drain(q: EventQueue) -> list[str]:
     out = []
     while not q.empty():
         e = q.get_nowait()
-        out.append(pb.JobState.Name(e.job.state) if e.HasField("job") else
-                   f"iteration {e.iteration.iteration}")
+        out.append(e.phase.name if isinstance(e, JobRecord) else f"iteration {e.iteration}")
     return out
 
 
 def test_a_full_queue_drops_the_oldest_iteration_never_a_state_change():
     q = EventQueue(maxsize=3)
-    for e in (_iteration(0), _state(pb.JOB_STATE_PAUSED), _iteration(1),
-              _state(pb.JOB_STATE_RUNNING), _iteration(2), _state(pb.JOB_STATE_SUCCEEDED)):
+    for e in (_iteration(0), _state(Phase.PAUSED), _iteration(1), _state(Phase.RUNNING),
+              _iteration(2), _state(Phase.SUCCEEDED)):
         q.offer(e)
-    assert _drain(q) == ["JOB_STATE_PAUSED", "JOB_STATE_RUNNING", "JOB_STATE_SUCCEEDED"]
+    assert _drain(q) == ["PAUSED", "RUNNING", "SUCCEEDED"]
 
 
 def test_the_newest_iteration_is_kept_over_the_oldest():
@@ -42,8 +47,8 @@ def test_the_newest_iteration_is_kept_over_the_oldest():
 def test_a_queue_of_states_only_drops_the_oldest_state():
     # Each job event carries the whole job: the newer ones hold what the dropped one said.
     q = EventQueue(maxsize=2)
-    for e in (_state(pb.JOB_STATE_QUEUED), _state(pb.JOB_STATE_RUNNING), _iteration(7),
-              _state(pb.JOB_STATE_CANCELLED)):
+    for e in (_state(Phase.QUEUED), _state(Phase.RUNNING), _iteration(7),
+              _state(Phase.CANCELLED)):
         q.offer(e)
     # QUEUED gave way to iteration 7 (nothing else could), which gave way to CANCELLED.
-    assert _drain(q) == ["JOB_STATE_RUNNING", "JOB_STATE_CANCELLED"]
+    assert _drain(q) == ["RUNNING", "CANCELLED"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
-from matoptd import fields
+from matoptd.server import fields
 from matoptd.errors import InvalidArgument
 
 

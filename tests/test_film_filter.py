@@ -6,7 +6,7 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from matoptd.film_filter import Scaled, rewrite, scale
+from matoptd.engine.film_filter import Scaled, rewrite, scale
 
 
 def test_gaussian_and_tent_scale_with_the_film_height():

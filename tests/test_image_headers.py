@@ -10,7 +10,7 @@ import zlib
 import numpy as np
 import pytest
 
-from matoptd.image_headers import BadHeader, read_header
+from matoptd.server.image_headers import BadHeader, read_header
 
 from scenes import exr, png
 

@@ -47,7 +47,7 @@ def _node(node_id: str, alive: bool = True, **resources: float) -> dict:
 
 
 def test_a_ray_cluster_gets_one_worker_per_gpu_and_none_on_a_node_without():
-    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    ray_workers = pytest.importorskip("matoptd.workers.ray_cluster")
     nodes = [_node("aaaa1111", CPU=8, GPU=2), _node("bbbb2222", CPU=4),
              _node("cccc3333", alive=False, CPU=8, GPU=1)]
     slots = ray_workers.slots(nodes, cpu_workers=None)
@@ -57,7 +57,7 @@ def test_a_ray_cluster_gets_one_worker_per_gpu_and_none_on_a_node_without():
 
 
 def test_a_ray_cluster_without_gpus_gets_cpu_workers_per_node():
-    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    ray_workers = pytest.importorskip("matoptd.workers.ray_cluster")
     nodes = [_node("aaaa1111", CPU=8), _node("bbbb2222", CPU=3)]
     slots = ray_workers.slots(nodes, cpu_workers=2, memory_limit=1 << 30)
     assert [(s.name, s.gpu, s.threads, s.memory) for s in slots] == [
@@ -66,7 +66,7 @@ def test_a_ray_cluster_without_gpus_gets_cpu_workers_per_node():
 
 
 def test_the_cluster_watch_adds_the_workers_of_a_node_that_joins_and_retires_a_leavers():
-    ray_workers = pytest.importorskip("matoptd.ray_workers")
+    ray_workers = pytest.importorskip("matoptd.workers.ray_cluster")
     known: dict = {}
     retired: list[tuple[str, str]] = []
 

@@ -10,7 +10,9 @@ import collections
 
 import pytest
 
-from matoptd.scheduler import Action, Scheduler
+from matoptd.records import JobRecord, Phase
+from matoptd.scheduling.scheduler import Action, Scheduler
+from matoptd.settings import JobSettings, SceneInput
 
 ITERATION = 0.01                                    # seconds per iteration of every job
 COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.0, "results": 0.3,
@@ -23,6 +25,13 @@ class Clock:
 
     def __call__(self) -> float:
         return self.t
+
+
+SETTINGS = JobSettings(SceneInput("", "", {}, {}, ""), [], [])
+
+
+def add(s: Scheduler, name: str, user: str) -> None:
+    s.add_job(JobRecord(name, user, "scenes/s", SETTINGS))
 
 
 def make(workers: int = 1, **kw) -> tuple[Scheduler, Clock]:
@@ -51,21 +60,22 @@ def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | 
         if action is None:
             free_at[w] = clock.t + 0.05
             continue
-        finished = False
+        over = False
         if action.kind == "step":
             n = action.n
             if remaining is not None:
                 n = min(n, remaining[action.job])
                 remaining[action.job] -= n
-                finished = remaining[action.job] == 0
+                over = remaining[action.job] == 0
             clock.t += n * ITERATION
         else:
             clock.t += COSTS[action.kind]
             n = 0
-            finished = action.kind == "finish"
-        s.done(action, iterations=n, finished=finished)
+        s.done(action, iterations=n)
+        if over:  # as a lane does when a step reports the job done
+            s.end(action.job, Phase.SUCCEEDED, "iterations", 0)
         if action.kind == "cancel":
-            s.end(action.job, (parts or {}).get(action.job, 0))
+            s.end(action.job, Phase.CANCELLED, "cancelled", (parts or {}).get(action.job, 0))
         free_at[w] = clock.t
         done.append(action)
 
@@ -81,8 +91,8 @@ def iterations(actions: list[Action]) -> dict[str, int]:
 def test_fair_share_is_per_user_not_per_job():
     s, clock = make()
     for i in range(10):
-        s.add_job(f"alice{i}", "alice")
-    s.add_job("bob0", "bob")
+        add(s, f"alice{i}", "alice")
+    add(s, "bob0", "bob")
     done = run(s, clock, 120)
     per_user = collections.Counter()
     for job, n in iterations(done).items():
@@ -100,7 +110,7 @@ def test_switching_keeps_most_of_the_device_busy_with_iterations():
     s, clock = make()
     for u in range(8):
         for j in range(5):
-            s.add_job(f"u{u}j{j}", f"user{u}")
+            add(s, f"u{u}j{j}", f"user{u}")
     seconds = 300
     done = run(s, clock, seconds)
     busy_iterating = sum(iterations(done).values()) * ITERATION
@@ -112,9 +122,9 @@ def test_a_new_users_first_iteration_starts_within_a_few_seconds():
     s, clock = make()
     for u in range(8):
         for j in range(5):
-            s.add_job(f"u{u}j{j}", f"user{u}")
+            add(s, f"u{u}j{j}", f"user{u}")
     run(s, clock, 600)  # everybody has a long history of use
-    s.add_job("newcomer", "new")
+    add(s, "newcomer", "new")
     arrived = clock.t
     done = run(s, clock, 30)
     first = next(a for a in done if a.job == "newcomer" and a.kind == "step")
@@ -123,10 +133,10 @@ def test_a_new_users_first_iteration_starts_within_a_few_seconds():
 
 def test_a_returning_user_gets_no_saved_up_credit():
     s, clock = make()
-    s.add_job("a0", "alice")
-    s.add_job("b0", "bob")
+    add(s, "a0", "alice")
+    add(s, "b0", "bob")
     run(s, clock, 60)
-    s.add_job("carol0", "carol")  # new: starts at the least busy active user's account
+    add(s, "carol0", "carol")  # new: starts at the least busy active user's account
     done = run(s, clock, 60)
     n = iterations(done)
     assert n["carol0"] < 1.5 * min(n["a0"], n["b0"]), n  # a share, not a monopoly
@@ -134,11 +144,11 @@ def test_a_returning_user_gets_no_saved_up_credit():
 
 def test_a_job_stays_on_its_worker_and_new_jobs_go_to_the_least_loaded():
     s, clock = make(workers=2)
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     first = s.next("w0")
     assert (first.kind, first.job) == ("load", "a")
     s.done(first)
-    s.add_job("b", "bob")
+    add(s, "b", "bob")
     # w0 holds a; b goes to the idle w1, which holds nothing, even if w0 asks first
     assert s.next("w0").kind == "step"
     second = s.next("w1")
@@ -162,7 +172,7 @@ def test_a_job_stays_on_its_worker_and_new_jobs_go_to_the_least_loaded():
 
 def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     s, clock = make()
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     s.done(s.next("w0"))                           # load
     step = s.next("w0")
     assert s.pause("a") is False                   # busy: it will park at the boundary
@@ -170,7 +180,7 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     park = s.next("w0")
     assert (park.kind, park.job) == ("park", "a")
     s.done(park)
-    assert s.jobs["a"].paused and s.next("w0") is None  # paused jobs do not run
+    assert s.jobs["a"].phase is Phase.PAUSED and s.next("w0") is None  # paused: no run
     s.resume("a")
     load = s.next("w0")
     assert (load.kind, load.job) == ("load", "a")  # from its checkpoint
@@ -181,7 +191,7 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     cancel = s.next("w0")
     assert (cancel.kind, cancel.job) == ("cancel", "a")
     s.done(cancel)
-    s.end("a", 2)                                  # two sensors' result images to make
+    s.end("a", Phase.CANCELLED, "cancelled", 2)    # two sensors' result images to make
     assert [(a.kind, a.n) for a in (s.next("w0"),)] == [("results", 0)]
     s.done(s.workers["w0"].action)
     assert s.cancel("a") is False                  # a second cancel changes nothing
@@ -190,13 +200,13 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     s.done(results)
     finish = s.next("w0")
     assert finish.kind == "finish"
-    s.done(finish, finished=True)
+    s.done(finish)
     assert "a" not in s.jobs
 
 
 def test_a_cancel_that_arrives_while_the_job_parks_still_ends_it():
     s, clock = make()
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     s.done(s.next("w0"))
     step = s.next("w0")
     s.pause("a")
@@ -210,21 +220,21 @@ def test_a_cancel_that_arrives_while_the_job_parks_still_ends_it():
     cancel = s.next("w0")
     assert cancel.kind == "cancel"
     s.done(cancel)
-    s.end("a", 1)                                  # the paused job's end phase runs too
+    s.end("a", Phase.CANCELLED, "cancelled", 1)    # the paused job's end phase runs too
     results = s.next("w0")
     assert (results.kind, results.job) == ("results", "a")
     s.done(results)
     finish = s.next("w0")
     assert (finish.kind, finish.job) == ("finish", "a")
-    s.done(finish, finished=True)
+    s.done(finish)
     assert "a" not in s.jobs
 
 
 def test_pausing_or_cancelling_a_job_that_is_not_loaded_needs_no_worker():
     s, clock = make()
-    s.add_job("a", "alice")
-    s.add_job("b", "bob")
-    assert s.pause("b") is True and s.jobs["b"].paused
+    add(s, "a", "alice")
+    add(s, "b", "bob")
+    assert s.pause("b") is True and s.jobs["b"].phase is Phase.PAUSED
     assert s.cancel("a") is True and "a" not in s.jobs  # never ran: nothing to show
     # a started job that is not loaded is loaded once more, to make its results
     s.resume("b")
@@ -241,8 +251,8 @@ def test_pausing_or_cancelling_a_job_that_is_not_loaded_needs_no_worker():
 
 def test_a_job_whose_worker_dies_twice_fails_and_the_others_go_on():
     s, clock = make(workers=2)
-    s.add_job("bad", "alice")
-    s.add_job("good", "bob")
+    add(s, "bad", "alice")
+    add(s, "good", "bob")
     s.done(s.next("w0"))                           # bad loads on w0
     s.done(s.next("w1"))                           # good loads on w1
     s.next("w0")                                   # bad steps...
@@ -261,7 +271,7 @@ def test_a_job_whose_worker_dies_twice_fails_and_the_others_go_on():
 
 def test_a_worker_stopped_on_purpose_costs_its_job_no_retry():
     s, clock = make()
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     s.done(s.next("w0"))
     s.next("w0")
     for _ in range(3):
@@ -275,8 +285,8 @@ def test_a_worker_stopped_on_purpose_costs_its_job_no_retry():
 def test_jobs_held_by_a_lost_worker_are_requeued_anywhere():
     s, clock = make(workers=2, max_resident=2)
     s.workers["w1"].ready = False
-    s.add_job("a", "alice")
-    s.add_job("b", "bob")
+    add(s, "a", "alice")
+    add(s, "b", "bob")
     run(s, clock, 10)                                        # both load on w0, take turns
     assert sorted(s.workers["w0"].resident) == ["a", "b"]
     running = s.next("w0")
@@ -289,7 +299,7 @@ def test_jobs_held_by_a_lost_worker_are_requeued_anywhere():
 
 def test_tasks_go_before_iterations():
     s, clock = make()
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     s.done(s.next("w0"))
     s.add_task("render preview")
     task = s.next("w0")
@@ -301,7 +311,7 @@ def test_tasks_go_before_iterations():
 @pytest.mark.parametrize("per_iteration,expected", [(0.001, 250), (0.1, 2), (1.0, 1)])
 def test_a_step_call_lasts_about_a_quarter_second(per_iteration, expected):
     s, clock = make()
-    s.add_job("a", "alice")
+    add(s, "a", "alice")
     s.done(s.next("w0"))
     first = s.next("w0")
     assert first.n == 1                                      # no pace known yet
@@ -315,9 +325,9 @@ def test_workers_that_ask_at_once_go_to_different_users():
     # arriving on an idle cluster): one user with many jobs must not take them all.
     s, _ = make(workers=8)
     for i in range(20):
-        s.add_job(f"big{i}", "alice")
+        add(s, f"big{i}", "alice")
     for user in ("bob", "carol", "dave"):
-        s.add_job(f"{user}0", user)
+        add(s, f"{user}0", user)
     actions = [s.next(w) for w in list(s.workers)]
     users = collections.Counter(a.job.rstrip("0123456789") for a in actions)
     assert users["bob"] == users["carol"] == users["dave"] == 1
@@ -326,8 +336,8 @@ def test_workers_that_ask_at_once_go_to_different_users():
 
 def test_a_charge_for_work_in_flight_is_refunded_when_it_is_done_or_lost():
     s, clock = make(workers=2)
-    s.add_job("a", "alice")
-    s.add_job("b", "bob")
+    add(s, "a", "alice")
+    add(s, "b", "bob")
     load_a, load_b = s.next("w0"), s.next("w1")
     assert s.usage["alice"] > 0 and s.usage["bob"] > 0  # charged when they began
     clock.t = 0.4
@@ -341,8 +351,8 @@ def test_an_end_phase_shares_the_worker_with_other_users_jobs():
     """A cancelled job's result images, one sensor per action, take slices like iterations:
     another user's job goes on stepping between them, and the end phase still completes."""
     s, clock = make(slice_seconds=0.5)
-    s.add_job("a", "alice")
-    s.add_job("b", "bob")
+    add(s, "a", "alice")
+    add(s, "b", "bob")
     run(s, clock, 2.0)                             # both loaded and stepped in turns
     s.cancel("a")
     actions = run(s, clock, 20.0, parts={"a": 8})

@@ -5,7 +5,8 @@ each on its own device, and this module is all the two sides share: plain data i
 (dataclasses, numbers, strings, bytes, numpy arrays), no protobuf messages, no gRPC errors,
 nothing about users or the store. Inputs cross it as content, or as a SHA-256 digest that the
 worker resolves with the ``fetch`` function it was given, never as a path into the daemon's
-data directory: a worker may run on another machine.
+data directory: a worker may run on another machine. A job's inputs are its ``JobSettings``
+(``settings.py``), as the daemon admitted them.
 
 A job's run lives on one worker between ``start`` and ``release``: ``step`` runs iterations on
 the state it holds (nothing is shipped per iteration), ``checkpoint`` returns everything
@@ -30,16 +31,13 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from .settings import JobSettings, ReferenceInput, SceneInput
 from .truth import ParameterError
 
 Fetch = Callable[[str], bytes]  # sha256 -> the blob's bytes (raises KeyError when unknown)
 
 # Parameter kinds, as the API names them (lower case of ParameterKind).
 KINDS = ("scalar", "rgb", "texture", "volume_grid", "vertex_array", "transform", "vector")
-# Losses, as the API names them (lower case of Loss).
-LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_error",
-          "multiscale_mse")
-
 
 # -- errors ---------------------------------------------------------------------------------
 
@@ -57,19 +55,6 @@ class OutOfMemory(EngineError):
 
 
 # -- scenes ---------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class SceneInput:
-    """A scene bundle by content. ``files`` maps bundle paths to digests and includes
-    ``main_file``, the XML Mitsuba loads (already prepared by the daemon: stable ids, float
-    textures). ``key`` names this exact content, so a worker can keep what it laid out."""
-
-    key: str
-    main_file: str
-    files: dict[str, str]
-    overrides: dict[str, str]
-    display: str  # the user's name for the scene, for messages
-
 
 @dataclass
 class SensorInfo:
@@ -110,9 +95,9 @@ class RenderRequest:
     scene's for the keys given (flat, Mitsuba's order), restored afterwards."""
 
     values: dict[str, np.ndarray]
-    spp: int
-    sensors: list[int]  # empty: all
-    seed: int
+    spp: int = 64  # RenderScene's default: a preview to look at
+    sensors: list[int] = field(default_factory=list)  # empty: all
+    seed: int = 0
 
 
 @dataclass
@@ -131,54 +116,6 @@ class Image:
 
 
 # -- jobs -----------------------------------------------------------------------------------
-
-@dataclass
-class ReferenceInput:
-    """A reference image and what leaves its pixels out of the loss: a mask image of its size
-    (weights in [0, 1]) and/or its own alpha channel."""
-
-    sensor: int
-    sha256: str  # PNG/JPEG, 8 or 16 bit (sRGB), or OpenEXR (linear)
-    name: str    # the user's file name, for messages
-    mask_sha256: str = ""  # "": no mask image
-    mask_name: str = ""
-    alpha_mask: bool = False
-
-
-@dataclass
-class ParameterSetting:
-    """One parameter to optimize, validated and defaulted by the daemon."""
-
-    key: str
-    learning_rate: float
-    lo: float
-    hi: float
-    initial: np.ndarray | None = None  # flat; None: the scene's value
-    smoothness: float = 0.0            # weight of a texture's or grid's smoothness term
-
-
-@dataclass
-class JobSettings:
-    scene: SceneInput
-    references: list[ReferenceInput]
-    parameters: list[ParameterSetting]
-    loss: str = "mse"            # one of LOSSES
-    iterations: int = 100
-    min_error: float = 0.001
-    spp: int = 16
-    seed: int = 0
-    cosine: bool = True          # learning rates decay along a half cosine to a tenth
-    step_per_sensor: bool = False
-    clamp: bool = False
-    resolution: int = 0          # film height (0: the scene's); widths follow each reference
-    truth: dict[str, np.ndarray] = field(default_factory=dict)  # flat values, for errors
-    image_error_every: int = 0
-    image_error_spp: int = 64
-    fit_exposure: bool = False   # one RGB gain per reference: render * gain ~ reference
-    # The most samples (film pixels x spp) one render call may take; 0: no limit. Results
-    # render at RESULT_SPP, or fewer on a film so large that RESULT_SPP would exceed this.
-    max_samples: int = 0
-
 
 RESULT_SPP = 64  # results are renders to look at, off the clock
 
@@ -308,3 +245,7 @@ class Engine(Protocol):
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""
+
+
+# The calls a worker answers, by name: a worker dispatches these and no other attribute.
+METHODS = frozenset(name for name in vars(Engine) if not name.startswith("_"))

@@ -1,44 +1,39 @@
-"""Errors that reach the user as a gRPC status: the code says what kind, the message says which
-file, key or value. Everything else that escapes a handler is INTERNAL."""
+"""The daemon's errors in its own terms: the class says what kind of failure, the message says
+which file, key or value. The API's edge maps each kind to a gRPC status code, in one place
+(``server/status.py``); the store, the scheduling and the workers never see gRPC."""
 
 from __future__ import annotations
 
-import grpc
-
 
 class UserError(Exception):
-    code = grpc.StatusCode.INVALID_ARGUMENT
+    """A failure whose message is for the user as it stands (the caller's request, or what
+    happened to it); anything else that escapes a request is an internal error."""
 
 
 class InvalidArgument(UserError):
-    code = grpc.StatusCode.INVALID_ARGUMENT
+    """The request is wrong whatever the daemon's state: a bad value, file or key."""
 
 
 class NotFound(UserError):
-    code = grpc.StatusCode.NOT_FOUND
+    """No such scene, job or blob, or not the caller's (the same message either way)."""
 
 
 class FailedPrecondition(UserError):
-    code = grpc.StatusCode.FAILED_PRECONDITION
-
-
-class AlreadyExists(UserError):
-    code = grpc.StatusCode.ALREADY_EXISTS
+    """The request does not fit the state it meets: resuming a finished job, deleting a scene
+    that unfinished jobs use."""
 
 
 class ResourceExhausted(UserError):
-    code = grpc.StatusCode.RESOURCE_EXHAUSTED
+    """Over a limit that protects the other users: a quota, a budget of samples or jobs."""
 
 
 class Unavailable(UserError):
     """The service cannot do this now (shutting down, no renderer running); try again."""
-    code = grpc.StatusCode.UNAVAILABLE
 
 
 class Internal(UserError):
     """Not the caller's fault, but with a message that says what happened (a renderer process
     that died while serving the request), rather than a traceback's last line."""
-    code = grpc.StatusCode.INTERNAL
 
 
 class DiskFull(ResourceExhausted):

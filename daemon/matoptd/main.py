@@ -17,7 +17,7 @@ MATOPTD_MAX_SAMPLES etc. for the limits).
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
 With ``--ray`` the workers are Ray actors on the machines of a Ray cluster instead
-(``ray_workers.py``).
+(``workers/ray_cluster.py``).
 """
 
 from __future__ import annotations
@@ -32,17 +32,24 @@ import sys
 from pathlib import Path
 
 import grpc
-from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_health.v1 import health_pb2
 
-from . import __version__, admission, devices, reflection
-from .auth import Authenticator, load_tokens
-from .runner import Runner
-from .server import Service, add_services
-from .store import Store
-from .workers import Worker
+from matopt_api.costs import format_size
+
+from . import __version__
+from .scheduling.control import JobControl
+from .scheduling.lanes import Lanes
+from .scheduling.recovery import Recovery
+from .scheduling.scheduler import Scheduler
+from .scheduling.state import State
+from .server import admission, app
+from .server.backend import Backend
+from .server.auth import Authenticator, load_tokens
+from .store.store import Store
+from .workers import devices
+from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
-MAX_MESSAGE = 64 << 20
 
 # The admission limits (admission.Limits): what one request or one user may ask of the shared
 # workers. Sizes take suffixes (4G, 512M).
@@ -160,19 +167,19 @@ async def serve(args: argparse.Namespace) -> None:
     except ValueError as exc:
         raise SystemExit(f"matoptd: {exc}")
     args.data_dir.mkdir(parents=True, exist_ok=True)
-    store = Store(args.data_dir, quota)
+    try:
+        store = Store(args.data_dir, quota)
+    except RuntimeError as exc:  # a data dir made by a newer matoptd
+        raise SystemExit(f"matoptd: --data-dir {args.data_dir}: {exc}")
     cluster = None
     if args.ray:
-        runner, cluster = await asyncio.to_thread(start_ray_workers, args, store)
+        lanes, cluster = await asyncio.to_thread(start_ray_workers, args, store)
     else:
-        runner = await asyncio.to_thread(start_workers, args, store)
+        lanes = await asyncio.to_thread(start_workers, args, store)
 
-    server = grpc.aio.server(options=[("grpc.max_receive_message_length", MAX_MESSAGE),
-                                      ("grpc.max_send_message_length", MAX_MESSAGE)])
-    names = add_services(server, Service(store, runner, Authenticator(tokens), limits))
-    health_servicer = health.aio.HealthServicer()
-    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
-    reflection.enable(server, [*names, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name])
+    backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
+                          lanes.state.events, limits)
+    server, health_servicer, names = app.build(backend, Authenticator(tokens))
     if args.tls_cert:
         creds = grpc.ssl_server_credentials([(args.tls_key.read_bytes(),
                                               args.tls_cert.read_bytes())])
@@ -180,76 +187,65 @@ async def serve(args: argparse.Namespace) -> None:
     else:
         bound = server.add_insecure_port(args.listen)
     await server.start()
-    for name in ["", *names]:
+    for name in names:
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
     if args.port_file:
         tmp = args.port_file.with_suffix(".tmp")
         tmp.write_text(str(bound))
         tmp.replace(args.port_file)
     log.info("matoptd %s serving on %s:%d (%d worker(s), %s, %s)", __version__, host, bound,
-             sum(w.state == "idle" for w in runner.workers.values()),
+             sum(w.state == "idle" for w in lanes.state.workers.values()),
              "TLS" if args.tls_cert else "plaintext",
              f"{len(set(tokens.values()))} user(s)" if tokens else "local user only")
     if quota is not None:
-        log.info("blob quota: %s per user", devices.format_size(quota))
+        log.info("blob quota: %s per user", format_size(quota))
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
-    health_task = asyncio.create_task(report_health(health_servicer, ["", *names], runner,
-                                                    stop))
+    health_task = asyncio.create_task(app.report_health(health_servicer, names, lanes, stop))
     await stop.wait()
     await health_task
     log.info("shutting down: finishing the current iteration")
     await health_servicer.enter_graceful_shutdown()
     # Side by side: open calls (a watch stream never ends by itself) get their grace while
     # the workers finish their iterations, so a shutdown takes the longer of the two, not both.
-    await asyncio.gather(server.stop(grace=5), asyncio.to_thread(runner.stop))
+    await asyncio.gather(server.stop(grace=5), asyncio.to_thread(lanes.stop))
     if cluster is not None:
         cluster.stop()
     store.close()
     log.info("stopped")
 
 
-async def report_health(servicer: health.aio.HealthServicer, names: list[str], runner: Runner,
-                        stop: asyncio.Event) -> None:
-    """NOT_SERVING while the service cannot do work (no worker runs, or the disk is full),
-    so that a load balancer or a supervisor sees it; SERVING again when it can."""
-    serving = True
-    while not stop.is_set():
-        now = runner.serving
-        if now != serving:
-            serving = now
-            status = (health_pb2.HealthCheckResponse.SERVING if now
-                      else health_pb2.HealthCheckResponse.NOT_SERVING)
-            for name in names:
-                await servicer.set(name, status)
-            log.warning("health: %s", "SERVING" if now else "NOT_SERVING")
-        try:
-            await asyncio.wait_for(stop.wait(), 0.5)
-        except asyncio.TimeoutError:
-            pass
+
+def lanes_for(args: argparse.Namespace, store: Store, workers: list[Handle]) -> Lanes:
+    """The scheduling over ``workers``, the store's jobs recovered into it (not started)."""
+    slicing = {"slice_seconds": args.slice} if args.slice is not None else {}
+    state = State(store, Scheduler(**slicing))
+    recovery = Recovery(state, args.watchdog)
+    recovery.recover()
+    return Lanes(state, workers, args.watchdog, recovery)
 
 
-def start_workers(args: argparse.Namespace, store: Store) -> Runner:
+def start_workers(args: argparse.Namespace, store: Store) -> Lanes:
     """The workers the machine allows, started and ready. CUDA devices that fail to start are
     left out; when none works (and none was named), one CPU worker takes their place."""
     chosen = [d.strip() for d in args.devices.split(",")] if args.devices else None
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
     places = devices.placements(chosen, args.workers, args.variant, args.worker_cores)
-    runner, failures = _run(args, store, places)
-    if not runner.ready and places[0].cuda is not None and chosen is None \
+    lanes, failures = _run(args, store, places)
+    if not lanes.ready and places[0].cuda is not None and chosen is None \
             and args.variant is None:
         log.warning("no CUDA device works (%s); using the CPU", "; ".join(failures))
-        runner, failures = _run(args, store, devices.placements(None, 1, "llvm_ad_rgb",
-                                                                args.worker_cores))
-    if not runner.ready:
+        lanes, failures = _run(args, store, devices.placements(None, 1, "llvm_ad_rgb",
+                                                               args.worker_cores))
+    if not lanes.ready:
         raise SystemExit("matoptd: no renderer worker started: " + "; ".join(failures))
     for failure in failures:
         log.warning("left out: %s", failure)
-    return runner
+    return lanes
 
 
 def start_ray_workers(args: argparse.Namespace, store: Store):
@@ -261,26 +257,26 @@ def start_ray_workers(args: argparse.Namespace, store: Store):
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
     try:
-        from . import ray_workers
+        from .workers import ray_cluster
     except ImportError as exc:
         raise SystemExit(f"matoptd: --ray needs Ray ({exc}); pip install 'matopt-mitsuba[daemon,ray]'")
     try:
-        ray_workers.connect(args.ray)
+        ray_cluster.connect(args.ray)
     except Exception as exc:  # noqa: BLE001 - Ray raises many kinds; the message says which
         raise SystemExit(f"matoptd: --ray {args.ray}: cannot connect: {exc}")
     limit = _memory_limit(args, None)
-    cluster = ray_workers.ClusterWatch(
-        lambda slot: ray_workers.make_worker(slot, args.variant, store.read_blob,
+    cluster = ray_cluster.ClusterWatch(
+        lambda slot: ray_cluster.make_worker(slot, args.variant, store.blobs.read,
                                              args.data_dir),
-        add=lambda w: runner.add_worker(w), retire=lambda n, why: runner.retire(n, why),
-        known=lambda: runner.workers, cpu_workers=args.workers, memory_limit=limit)
-    runner = Runner(store, cluster.initial(), args.watchdog, args.slice, args.max_samples)
-    for failure in runner.start():
+        add=lambda w: lanes.add_worker(w), retire=lambda n, why: lanes.retire(n, why),
+        known=lambda: lanes.state.workers, cpu_workers=args.workers, memory_limit=limit)
+    lanes = lanes_for(args, store, cluster.initial())
+    for failure in lanes.start():
         log.warning("left out: %s", failure)
-    if not runner.ready:
+    if not lanes.ready:
         log.warning("no worker is ready on the Ray cluster yet; jobs wait until one is")
     cluster.start()
-    return runner, cluster
+    return lanes, cluster
 
 
 def _memory_limit(args: argparse.Namespace, workers: int | None) -> int | None:
@@ -295,14 +291,14 @@ def _memory_limit(args: argparse.Namespace, workers: int | None) -> int | None:
 
 
 def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
-         ) -> tuple[Runner, list[str]]:
+         ) -> tuple[Lanes, list[str]]:
     limit = _memory_limit(args, len(places))
     workers = [Worker(f"workers/{i}", p,
                       args.variant or ("cuda_ad_rgb" if p.cuda is not None else "llvm_ad_rgb"),
-                      args.data_dir, limit, store.read_blob)
+                      args.data_dir, limit, store.blobs.read)
                for i, p in enumerate(places)]
-    runner = Runner(store, workers, args.watchdog, args.slice, args.max_samples)
-    return runner, runner.start()
+    lanes = lanes_for(args, store, workers)
+    return lanes, lanes.start()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -23,8 +23,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .. import engine_api as api, film_filter
-from . import diagnosis, images, parameters, scene as scenes, scene_export
+from .. import engine_api as api
+from ..settings import Values, read_values
+from . import diagnosis, film_filter, images, parameters, scene as scenes, scene_export
 from .integrator import medium_notes
 from .optimize import Best, Config, Optimization, Reference, Setting
 
@@ -153,6 +154,13 @@ class MitsubaEngine:
     def _blob_path(self, sha256: str) -> str:
         return str(self.blob(sha256))
 
+    def _values(self, values: Values, what: str) -> np.ndarray:
+        """Values a job gives, inline or (large ones) fetched by digest."""
+        try:
+            return read_values(values, lambda sha: self.blob(sha).read_bytes(), what)
+        except ValueError as exc:
+            raise api.InvalidInput(str(exc)) from None
+
     # -- jobs -------------------------------------------------------------------------------
 
     def start(self, job: str, settings: api.JobSettings, checkpoint: bytes | None
@@ -165,20 +173,24 @@ class MitsubaEngine:
         keys = [p.key for p in settings.parameters]
         loaded = self.load(settings.scene, keys)
         notes: list[str] = []
-        if settings.resolution:
+        if settings.film_height:
             loaded = self._scale_filters(settings, loaded, keys, notes)
         refs = _references(loaded, settings, self._blob_path, notes)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         channels = {k: int(listed[k].shape[-1]) for k in keys if k in listed
                     and listed[k].kind in ("texture", "volume_grid") and listed[k].shape}
+        truth = {k: self._values(v, f"ground truth of '{k}'") for k, v in settings.truth.items()}
         config = Config(loss=settings.loss, iterations=settings.iterations,
                         min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
-                        cosine=settings.cosine, step_per_sensor=settings.step_per_sensor,
-                        clamp=settings.clamp, truth=dict(settings.truth), channels=channels,
+                        cosine=settings.schedule == "cosine",
+                        step_per_sensor=settings.sensor_mode == "step_per_sensor",
+                        clamp=settings.clamp, truth=truth, channels=channels,
                         image_error_every=settings.image_error_every,
                         image_error_spp=settings.image_error_spp,
                         fit_exposure=settings.fit_exposure)
-        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi, p.initial,
+        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi,
+                                            None if p.initial is None else self._values(
+                                                p.initial, f"initial value of '{p.key}'"),
                                             p.smoothness)
                                     for p in settings.parameters], refs, config)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
@@ -209,13 +221,13 @@ class MitsubaEngine:
     def _scale_filters(self, settings: api.JobSettings, loaded: mi.Scene, keys: list[str],
                        notes: list[str]) -> mi.Scene:
         """The scene again, with the reconstruction filter of each sensor whose film height
-        ``settings.resolution`` changes scaled by the same ratio (``film_filter``); a filter
+        ``settings.film_height`` changes scaled by the same ratio (``film_filter``); a filter
         Mitsuba does not let be sized is left as it is, with a note."""
         sizes: dict[str, film_filter.Scaled] = {}
         for index in sorted({r.sensor for r in settings.references}):
             sensor = loaded.sensors()[index]
             height = int(sensor.film().crop_size()[1])
-            ratio = settings.resolution / height
+            ratio = settings.film_height / height
             rfilter = sensor.film().rfilter()
             name = str(rfilter).split("[")[0]
             plugin = film_filter.PLUGINS.get(name, name)
@@ -352,7 +364,7 @@ def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
 def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[str]
                 ) -> dict[int, Reference]:
     """Reads each reference (with its mask) and sizes its sensor's film: height from
-    ``settings.resolution`` (or the film's own), width from the reference's aspect ratio. Each
+    ``settings.film_height`` (or the film's own), width from the reference's aspect ratio. Each
     sensor keeps its own size. Masked and NaN/Inf pixels weigh 0 in every loss; the notes
     count them."""
     params = mi.traverse(scene)
@@ -366,7 +378,7 @@ def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[st
         picture, weight, said = images.load_reference(r, blob)
         notes += said
         film = sensors[index].film().crop_size()
-        width, height = api.reference_film(settings.resolution or declared[index][1],
+        width, height = api.reference_film(settings.film_height or declared[index][1],
                                            picture.shape[1], picture.shape[0])
         if (width, height) != (int(film[0]), int(film[1])):
             key = _film_key(params, sensors[index])
@@ -378,7 +390,7 @@ def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[st
         if (width, height) != declared[index]:
             notes.append(f"sensor {index} renders {width}x{height} (film was "
                          f"{declared[index][0]}x{declared[index][1]}) to follow "
-                         + (f"film height {settings.resolution} and " if settings.resolution
+                         + (f"film height {settings.film_height} and " if settings.film_height
                             else "") + f"reference '{name}' ({picture.shape[1]}x"
                          f"{picture.shape[0]})")
         picture, weight = images.fit(picture, weight, (width, height))

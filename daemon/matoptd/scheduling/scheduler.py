@@ -1,8 +1,18 @@
-"""Which worker does what next: a state machine without Mitsuba, threads or I/O.
+"""Which worker does what next, and where each job is in its life: a state machine without
+Mitsuba, threads or I/O.
 
-The runner (``runner.py``) tells it what happens (jobs added, paused, resumed, cancelled;
-workers ready or lost; actions done) and asks it, whenever a worker is free, what that worker
-does next. Tests drive it directly with a fake clock and no processes.
+Job control, the lanes and recovery tell it what happens (jobs added, paused, resumed,
+cancelled; workers ready or lost; actions done) and ask it, whenever a worker is free, what
+that worker does next. It holds each active job's record (``records.JobRecord``) and is the
+only code that changes a job's ``Phase``; the others persist the record after each change.
+Tests drive it directly with a fake clock and no processes.
+
+    QUEUED --load--> RUNNING --pause--> PAUSING --park--> PAUSED --resume--> QUEUED
+       |                |  ^---resume----'                   |
+       |                '--cancel--> CANCELLING --cancel action--> ENDING --finish--> outcome
+       '--cancel (never ran)--> CANCELLED          last iteration --'
+    a lost worker: RUNNING -> QUEUED, PAUSING -> PAUSED; a second loss under a job: FAILED
+    the daemon stopping: RUNNING, PAUSING, CANCELLING, ENDING -> INTERRUPTED
 
 Decisions, in order, for a free worker:
 1. a pause or cancel requested on a job loaded on it (acted on at an iteration boundary);
@@ -18,11 +28,14 @@ Decisions, in order, for a free worker:
    iteration); a job not loaded anywhere goes to the least loaded free worker.
 
 A worker holds at most ``max_resident`` loaded jobs. Switching jobs evicts one (checkpoint and
-release, done by the runner) before another loads: every scene a process holds makes every
+release, done by its lane) before another loads: every scene a process holds makes every
 job's kernels bigger, since Mitsuba dispatches a BSDF's or emitter's virtual call over every
 live instance (an iteration of a 64 px Cornell box took 2.4x as long with four other such
 scenes alive in the process). Switches are what slices pay for, so a slice is long against a
 switch and short against a user's patience (bench/switching.py measures both).
+
+``Scheduler`` is over 300 lines: the transitions and the decisions read the same few fields,
+and splitting them would put one state machine's rules in two places.
 """
 
 from __future__ import annotations
@@ -33,10 +46,14 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from ..records import Ending, JobRecord, Phase
+
 SLICE_SECONDS = 2.0   # a job keeps its worker this long while others wait
 STEP_SECONDS = 0.25   # one step call: a pause or cancel waits at most this long
 MAX_STEP = 1000       # iterations in one step call
 EMA = 0.3             # weight of the newest per-iteration time
+WANTS_WORKER = frozenset({Phase.QUEUED, Phase.RUNNING, Phase.CANCELLING, Phase.ENDING})
+INTERRUPTIBLE = frozenset({Phase.RUNNING, Phase.PAUSING, Phase.CANCELLING, Phase.ENDING})
 
 
 @dataclass
@@ -59,26 +76,34 @@ class Action:
 
 @dataclass
 class Job:
-    name: str
-    user: str
+    """An active job: its record, and what running it needs besides."""
+
+    record: JobRecord
     worker: str | None = None   # where its run is loaded
-    paused: bool = False
-    control: str = ""           # "pause" or "cancel", requested while loaded or busy
-    started: bool = False       # has run (has a checkpoint or results to make on cancel)
+    started: bool = False       # has run (has a checkpoint, or results to make on cancel)
     busy: bool = False          # an action on it is in flight
     per_iteration: float | None = None  # seconds, moving average
     used: float = 0.0           # device seconds so far
     last_run: float = -math.inf
     crashes: list[str] = field(default_factory=list)  # how workers were lost under it
-    ending: bool = False        # in its end phase: no more iterations, results to make
-    parts: int = 0              # sensors whose result images the end phase renders...
-    part: int = 0               # ...and how many of them are done
+    cancel_asked: float | None = None  # when, while its iterations may still keep it waiting
+    checkpointed: float = -math.inf    # when its lane last wrote its checkpoint
+
+    @property
+    def name(self) -> str:
+        return self.record.name
+
+    @property
+    def user(self) -> str:
+        return self.record.owner
+
+    @property
+    def phase(self) -> Phase:
+        return self.record.phase
 
     @property
     def wants_worker(self) -> bool:
-        # A cancelled job, paused or not, still needs a worker to make its results.
-        return (not self.paused and self.control != "pause") or self.ending or (
-            self.control == "cancel" and self.started)
+        return self.record.phase in WANTS_WORKER
 
 
 @dataclass
@@ -128,24 +153,25 @@ class Scheduler:
     def worker_ready(self, name: str) -> None:
         self.workers[name].ready = True
 
-    def worker_lost(self, name: str, what: str = "", counts: bool = True) -> Lost:
-        """The worker's process is gone: its loaded jobs lose their runs. The one it was
-        running is retried once; with ``counts`` (the worker died or hung, rather than being
-        stopped on purpose) a second loss under the same job fails it. ``what`` says how it
-        was lost, for the job's message."""
+    def worker_lost(self, name: str, what: str = "", counts: bool = True,
+                    requeue: bool = True) -> Lost:
+        """The worker's process is gone: its loaded jobs lose their runs and go on from their
+        checkpoints (RUNNING ones QUEUED again, with ``requeue``; PAUSING ones PAUSED). The
+        one it was running is retried once; with ``counts`` (the worker died or hung, rather
+        than being stopped on purpose) a second loss under the same job fails it. ``what``
+        says how it was lost, for the job's message."""
         w = self.workers[name]
         lost = Lost()
         action, w.action = w.action, None
         if action is not None:
             self._refund(action)
         for job in [self.jobs[j] for j in w.resident if j in self.jobs]:
-            job.worker, job.busy = None, False
-            if action is not None and job.name == action.job:
-                continue
-            lost.others.append(job.name)
+            self._lose_run(job, requeue)
+            if action is None or job.name != action.job:
+                lost.others.append(job.name)
         if action is not None and action.job in self.jobs:
             job = self.jobs[action.job]
-            job.busy, job.worker = False, None
+            self._lose_run(job, requeue)
             lost.job = job.name
             if counts:
                 job.crashes.append(what)
@@ -156,60 +182,104 @@ class Scheduler:
         w.ready, w.resident, w.current = False, [], None
         return lost
 
+    def _lose_run(self, job: Job, requeue: bool) -> None:
+        job.worker, job.busy = None, False
+        if job.phase is Phase.PAUSING:
+            job.record.phase = Phase.PAUSED
+        elif job.phase is Phase.RUNNING and requeue:
+            job.record.phase = Phase.QUEUED
+
     # -- jobs -------------------------------------------------------------------------------
 
-    def add_job(self, name: str, user: str, paused: bool = False,
-                started: bool = False) -> None:
-        self._activate(user)
-        self.jobs[name] = Job(name, user, paused=paused, started=started)
+    def add_job(self, record: JobRecord, started: bool = False) -> Job:
+        """A job that is QUEUED (new, resumed), or PAUSED or INTERRUPTED (to be cancelled)."""
+        self._activate(record.owner)
+        job = self.jobs[record.name] = Job(record, started=started)
+        return job
 
     def remove(self, name: str) -> None:
         job = self.jobs.pop(name, None)
         if job is not None and job.worker in self.workers:
-            w = self.workers[job.worker]
-            if name in w.resident:
-                w.resident.remove(name)
-            if w.current == name:
-                w.current = None
+            self._unload(job, self.workers[job.worker])
 
     def pause(self, name: str) -> bool:
-        """True when the job is parked now (it was not loaded); else it parks at the next
-        iteration boundary of its worker."""
+        """True when the job is PAUSED now (it was not loaded); else it is PAUSING and parks
+        at its worker's next iteration boundary. A job whose iterations stop anyway (it is
+        cancelling or ending) is left to end."""
         job = self.jobs[name]
+        if job.phase not in (Phase.QUEUED, Phase.RUNNING):
+            return job.phase is Phase.PAUSED
         if job.worker is None and not job.busy:
-            job.paused, job.control = True, ""
+            job.record.phase = Phase.PAUSED
             return True
-        if job.control != "cancel":
-            job.control = "pause"
+        job.record.phase = Phase.PAUSING
         return False
 
     def resume(self, name: str) -> None:
+        """A pause not yet carried out is withdrawn; a paused (or interrupted) job queues."""
         job = self.jobs[name]
-        if job.control == "pause":
-            job.control = ""  # a pause not yet carried out is withdrawn
-        if job.paused:
+        if job.phase is Phase.PAUSING:
+            job.record.phase = Phase.RUNNING
+        elif job.phase in (Phase.PAUSED, Phase.INTERRUPTED):
             self._activate(job.user)
-            job.paused = False
+            job.record.phase = Phase.QUEUED
 
     def cancel(self, name: str) -> bool:
-        """True when the job can end now, without a worker: it never ran, or it is not loaded
-        and has nothing to show. Else a worker loads it (if needed) and finishes it."""
+        """True when the job is CANCELLED now, without a worker: it never ran and is not
+        loaded. Else it is CANCELLING: a worker loads it (if need be) and ends it."""
         job = self.jobs[name]
-        if job.ending:  # its iterations are over already: the end phase goes on
+        if job.phase in (Phase.CANCELLING, Phase.ENDING):
             return False
         if job.worker is None and not job.busy and not job.started:
             self.remove(name)
+            job.record.phase, job.record.stop_reason = Phase.CANCELLED, "cancelled"
             return True
-        job.control = "cancel"
+        job.record.phase = Phase.CANCELLING
+        job.cancel_asked = self.clock()
         return False
 
-    def end(self, name: str, parts: int) -> None:
-        """The job's iterations are over (it ran them all, or a cancel stopped them): what
-        is left is its end phase, ``parts`` "results" actions and a "finish"."""
+    def end(self, name: str, outcome: Phase, reason: str, parts: int) -> None:
+        """The job's iterations are over (it ran them all, or a cancel stopped them), whatever
+        was asked of it meanwhile: its end phase is ``parts`` "results" actions and a
+        "finish", after which it is ``outcome``."""
         job = self.jobs[name]
-        job.ending, job.parts, job.part = True, parts, 0
-        if job.control == "cancel":
-            job.control = ""
+        job.record.phase = Phase.ENDING
+        job.record.ending = Ending(outcome, reason, parts)
+        job.cancel_asked = None  # result renders are not cut off
+
+    def finish(self, name: str) -> None:
+        """The end phase is over: the job is its outcome, and leaves the scheduler."""
+        record = self.jobs[name].record
+        ending, record.ending = record.ending, None
+        record.phase, record.stop_reason = ending.outcome, ending.reason
+        self.remove(name)
+
+    def cut_off(self, name: str) -> None:
+        """A cancel stopped the job's worker in the middle of an iteration: the job is
+        CANCELLED now, without results."""
+        record = self.jobs[name].record
+        record.phase, record.stop_reason, record.ending = Phase.CANCELLED, "cancelled", None
+        self.remove(name)
+
+    def fail(self, record: JobRecord, message: str) -> None:
+        record.phase, record.error, record.stop_reason = Phase.FAILED, message, "failed"
+        record.ending = None
+        self.remove(record.name)
+
+    def interrupt(self, record: JobRecord, why: str) -> None:
+        """The daemon stops (or stopped) while the job ran: INTERRUPTED, resumed on request."""
+        cp = record.checkpoint
+        record.phase, record.ending = Phase.INTERRUPTED, None
+        record.stop_reason = (f"{why}; resume continues from the checkpoint at iteration {cp}"
+                              if cp is not None else why)
+        self.remove(record.name)
+
+    def late_cancels(self, grace: float) -> list[str]:
+        """Workers whose action keeps a cancel waiting longer than ``grace`` seconds."""
+        now = self.clock()
+        return [w.name for w in self.workers.values() if w.action is not None
+                and (job := self.jobs.get(w.action.job)) is not None
+                and job.cancel_asked is not None and now - job.cancel_asked > grace]
 
     def in_flight(self, name: str) -> Action | None:
         """The action running on the job, if any."""
@@ -232,9 +302,9 @@ class Scheduler:
             return None
         for name in w.resident:
             job = self.jobs[name]
-            if job.control == "cancel" and not job.ending:
+            if job.phase is Phase.CANCELLING:
                 return self._begin(w, Action("cancel", worker, name))
-            if job.control == "pause":
+            if job.phase is Phase.PAUSING:
                 return self._begin(w, Action("park", worker, name))
         if self.tasks:
             return self._begin(w, Action("task", worker, task=self.tasks.popleft()))
@@ -244,17 +314,19 @@ class Scheduler:
         if job.worker == worker:
             if w.current != job.name or w.slice_start is None or self._expired(w):
                 w.current, w.slice_start = job.name, self.clock()  # a new slice
-            if job.ending:
-                return self._begin(w, Action("results", worker, job.name, n=job.part)
-                                   if job.part < job.parts else Action("finish", worker, job.name))
+            ending = job.record.ending
+            if job.phase is Phase.ENDING and ending is not None:
+                return self._begin(w, Action("results", worker, job.name, n=ending.done)
+                                   if ending.done < ending.parts
+                                   else Action("finish", worker, job.name))
             return self._begin(w, Action("step", worker, job.name, n=self._iterations(job, w)))
         if len(w.resident) >= self.max_resident:
             return self._begin(w, Action("evict", worker, w.resident[0]))
         return self._begin(w, Action("load", worker, job.name))
 
-    def done(self, action: Action, iterations: int = 0, finished: bool = False) -> None:
-        """The action completed (``finished``: the job ended with it, whatever its outcome).
-        Its time goes to the job's user."""
+    def done(self, action: Action, iterations: int = 0) -> None:
+        """The action completed (a "finish" ends its job). Its time goes to the job's
+        user; a job removed meanwhile (failed, deleted) only frees the worker."""
         w = self.workers[action.worker]
         w.action = None
         seconds = self.clock() - action.began
@@ -280,23 +352,21 @@ class Scheduler:
             job.worker = w.name
             w.resident.append(job.name)
             w.current, w.slice_start = job.name, None
+            if job.phase is Phase.QUEUED:
+                job.record.phase = Phase.RUNNING
         elif action.kind in ("evict", "park"):
             self._unload(job, w)
             job.started = True
-            if action.kind == "park":
-                job.paused = True
-                if job.control == "pause":  # a cancel that came meanwhile still stands
-                    job.control = ""
-        if action.kind == "cancel":  # the runner says with ``end`` how many parts follow
-            job.ending, job.control = True, ""
-        if action.kind == "results":
-            job.part += 1
-        if finished:
-            self.remove(job.name)
+            if action.kind == "park" and job.phase is Phase.PAUSING:
+                job.record.phase = Phase.PAUSED  # (a cancel that came meanwhile still stands)
+        elif action.kind == "results" and job.record.ending is not None:
+            job.record.ending.done += 1
+        elif action.kind == "finish":
+            self.finish(job.name)
 
     def drop_run(self, action: Action) -> None:
         """The action ended without a record of it, and its job's run was released: the job
-        waits to be loaded again from its last checkpoint."""
+        waits to be loaded again from its last checkpoint (PAUSING: it is PAUSED)."""
         w = self.workers[action.worker]
         w.action = None
         self._refund(action)
@@ -304,6 +374,8 @@ class Scheduler:
         if job is not None:
             job.busy = False
             self._unload(job, w)
+            if job.phase is Phase.PAUSING:
+                job.record.phase = Phase.PAUSED
 
     # -- inside -----------------------------------------------------------------------------
 
@@ -364,8 +436,8 @@ class Scheduler:
         # with the same account, the one served longest ago.
         order = sorted(by_user, key=lambda u: (self.usage[u], self.served[u]))
         ranked = [j for u in order for j in sorted(
-            by_user[u], key=lambda j: (j.control != "cancel", j.used, j.last_run))]
-        ranked.sort(key=lambda j: j.control != "cancel")
+            by_user[u], key=lambda j: (j.phase is not Phase.CANCELLING, j.used, j.last_run))]
+        ranked.sort(key=lambda j: j.phase is not Phase.CANCELLING)
         for job in ranked:
             if job.worker == w.name or not self._better_placed(job, w):
                 return job

@@ -1,11 +1,11 @@
-"""A worker process: one engine on one device, answering the daemon over a socket.
+"""The worker's own side: one engine on one device, answering the daemon's calls.
 
-The daemon starts it (``workers.py``) as ``python -m matoptd.worker`` with one end of a socket
-pair. It imports Mitsuba, sets its variant, renders a tiny scene with gradients once (so the
-kernels every job needs are compiled or loaded from the disk cache before a user waits on
-them), says it is ready, then answers calls one at a time:
+The daemon starts it (``handle.Worker``) as ``python -m matoptd.workers.serve`` with one end of
+a socket pair; a Ray actor (``ray_actor``) runs the same ``serve`` over queues. Its engine
+prepares itself (``engine/startup.py``: the variant, the plugins, the kernels warmed), the
+worker says it is ready, then answers calls one at a time:
 
-    daemon -> worker   ("call", method, args)       an ``engine_api.Engine`` method
+    daemon -> worker   ("call", method, args)       an ``engine_api.Engine`` method (METHODS)
     worker -> daemon   ("fetch", sha256)            needs a blob; answered ("blob", bytes)
                                                     or ("missing", message)
     worker -> daemon   ("ok", result) | ("error", kind, message)
@@ -22,14 +22,12 @@ import argparse
 import ctypes
 import os
 import signal
-import socket
 import sys
-import time
 import traceback
 from multiprocessing.connection import Connection
 from pathlib import Path
 
-from . import engine_api as api
+from .. import engine_api as api
 
 PR_SET_PDEATHSIG = 1
 
@@ -75,28 +73,11 @@ def own_directory(cache: Path) -> Path:
     return cache
 
 
-def warm_up() -> None:
-    """One gradient iteration on a 16x16 Cornell box: LLVM or CUDA initialised, the common
-    kernels in memory, before the first user's job."""
-    import drjit as dr
-    import mitsuba as mi
-
-    scene = mi.load_file(str(Path(__file__).parent / "engine" / "cornell_box.xml"),
-                         resx=16, resy=16)
-    params = mi.traverse(scene)
-    key = "red.reflectance.value"
-    dr.enable_grad(params[key])
-    params.update()
-    image = mi.render(scene, params, spp=1, integrator=mi.load_dict({"type": "prb"}))
-    loss = dr.mean(dr.square(image), axis=None)
-    dr.backward(loss)
-    dr.eval(dr.grad(params[key]))
-
 
 def serve(conn: Connection, cache: Path) -> None:
     """Answers calls until the daemon says exit or goes away. ``conn`` is a socket
     connection, or anything with its ``send`` and ``recv`` (a Ray actor's queues)."""
-    from .engine.service import MitsubaEngine
+    from ..engine.service import MitsubaEngine
 
     def fetch(sha256: str) -> bytes:
         conn.send(("fetch", sha256))
@@ -115,6 +96,8 @@ def serve(conn: Connection, cache: Path) -> None:
             return
         _, method, args = message
         try:
+            if method not in api.METHODS:
+                raise api.EngineError(f"a worker has no call '{method}'")
             result = getattr(engine, method)(*args)
         except Exception as exc:  # noqa: BLE001 - every failure goes back to the caller
             kind = _error_kind(exc)
@@ -125,28 +108,9 @@ def serve(conn: Connection, cache: Path) -> None:
             conn.send(("ok", result))
 
 
-def prepare(variant_name: str, threads: int) -> dict:
-    """Imports Mitsuba on ``variant_name``, loads its plugins and warms the kernels: what a
-    worker (a process here, or a Ray actor) does once before its first call. Returns what the
-    daemon shows of it."""
-    began = time.perf_counter()
-    import drjit as dr
-
-    if threads and not variant_name.startswith("cuda"):
-        # Never fewer than 2: with a pool of one thread, Mitsuba's OpenEXR reader and
-        # writer wait forever. On one core the two take turns.
-        dr.set_thread_count(max(2, threads))
-    from .engine import scene, variant
-    name, device = variant.select(variant_name)
-    scene.preload_plugins()
-    warm_up()
-    return {"variant": name, "device": device, "pid": os.getpid(),
-            "host": socket.gethostname(), "threads": threads or dr.thread_count(),
-            "seconds": time.perf_counter() - began}
-
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="matoptd.worker")
+    p = argparse.ArgumentParser(prog="matoptd.workers.serve")
     p.add_argument("--fd", type=int, required=True, help="this end of the daemon's socket pair")
     p.add_argument("--parent", type=int, required=True, help="the daemon's pid")
     p.add_argument("--cache", type=Path, required=True, help="this worker's blob cache")
@@ -164,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         os.sched_setaffinity(0, {int(c) for c in args.cores.split(",")})
     conn = Connection(args.fd)
     try:
+        from ..engine.startup import prepare
         info = prepare(args.variant, args.threads)
     except BaseException as exc:  # noqa: BLE001 - reported to the daemon, which says why
         conn.send(("failed", _message(exc)))

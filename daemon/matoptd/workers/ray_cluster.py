@@ -2,7 +2,7 @@
 
 Each worker is an ``EngineActor`` (``ray_actor.py``) pinned to one node: one per GPU a node
 offers, or ``--workers`` CPU actors per node on a cluster without GPUs. ``RayWorker`` is the
-daemon's handle on one; it is a ``workers.Worker`` whose pipe is two Ray calls, so the lanes,
+daemon's handle on one; it is a ``handle.Worker`` whose pipe is two Ray calls, so the lanes,
 the scheduler and the store treat it like a local process. ``ClusterWatch`` follows the
 cluster: a node that joins adds workers, a node that leaves retires its workers (their jobs go
 back to the queue and continue from their checkpoints elsewhere).
@@ -24,7 +24,7 @@ from ray.exceptions import RayError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from .devices import Placement, total_memory
-from .workers import START_TIMEOUT_S, Worker, WorkerLost
+from .handle import START_TIMEOUT_S, Worker, WorkerLost
 
 log = logging.getLogger("matoptd.ray")
 

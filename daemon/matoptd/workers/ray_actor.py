@@ -1,6 +1,6 @@
-"""A worker as a Ray actor: the engine of ``worker.py`` on a machine of a Ray cluster.
+"""A worker as a Ray actor: the engine of ``serve.py`` on a machine of a Ray cluster.
 
-The actor runs the same ``prepare`` and ``serve`` as a worker process, on one thread of its
+The actor runs the same preparation and ``serve`` as a worker process, on one thread of its
 own (Mitsuba's AD stays on one thread), and speaks the same messages; only the pipe differs.
 Instead of a socket, two queues: the daemon ``push``es its messages in and ``take``s the
 worker's out, each a Ray call. Blobs the daemon sends and results the worker returns travel
@@ -19,12 +19,12 @@ from pathlib import Path
 
 import ray
 
-from . import worker
+from . import serve
 from .devices import find_libllvm
 
 
 class QueueConnection:
-    """The engine's end of the pipe: what ``worker.serve`` needs of a socket connection."""
+    """The engine's end of the pipe: what ``serve.serve`` needs of a socket connection."""
 
     def __init__(self, inbox: queue.Queue, outbox: queue.Queue) -> None:
         self.inbox, self.outbox = inbox, outbox
@@ -59,19 +59,20 @@ class EngineActor:
             os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
         self.inbox: queue.Queue = queue.Queue()
         self.outbox: queue.Queue = queue.Queue()
-        cache = worker.own_directory(base / name.replace("/", "-") / "worker-cache")
+        cache = serve.own_directory(base / name.replace("/", "-") / "worker-cache")
         node = ray.get_runtime_context().get_node_id()
         threading.Thread(target=self._run, args=(variant, threads, cache, node),
                          name="matoptd-engine", daemon=True).start()
 
     def _run(self, variant: str, threads: int, cache: Path, node: str) -> None:
         try:
-            info = worker.prepare(variant, threads)
+            from ..engine.startup import prepare
+            info = prepare(variant, threads)
         except BaseException as exc:  # noqa: BLE001 - reported to the daemon, which says why
             self.outbox.put(("failed", f"{type(exc).__name__}: {exc}"))
             return
         self.outbox.put(("ready", {**info, "node": node}))
-        worker.serve(QueueConnection(self.inbox, self.outbox), cache)
+        serve.serve(QueueConnection(self.inbox, self.outbox), cache)
 
     def push(self, *message) -> None:
         # Top-level object references among the arguments arrive resolved (blobs as bytes).

@@ -12,7 +12,7 @@ from __future__ import annotations
 from google.protobuf.descriptor import FieldDescriptor
 from google.protobuf.message import Message
 
-from .errors import InvalidArgument
+from ..errors import InvalidArgument
 
 # The longest value of a text field, by field name; any other text field may hold MAX_TEXT.
 # Names and ids are identifiers (ours are under 80 characters); paths and keys name files and

@@ -1,16 +1,15 @@
 """Who is calling: bearer tokens mapped to user names.
 
 With a tokens file every RPC (but health and reflection, which are separate services) needs
-``authorization: Bearer <token>``. Without one the daemon serves a single local user and binds
-loopback only, so nobody else can reach it.
+``authorization: Bearer <token>`` (``interceptors.Authentication`` asks). Without one the daemon
+serves a single local user and binds loopback only, so nobody else can reach it.
 """
 
 from __future__ import annotations
 
 import hmac
 from pathlib import Path
-
-import grpc
+from typing import Iterable
 
 LOCAL_USER = "local"
 MIN_TOKEN_LENGTH = 16
@@ -42,11 +41,12 @@ class Authenticator:
     def __init__(self, tokens: dict[str, str] | None) -> None:
         self.tokens = tokens
 
-    def user(self, context: grpc.aio.ServicerContext) -> str | None:
-        """The calling user, or None when the token is missing or unknown."""
+    def user(self, metadata: Iterable[tuple[str, str]] | None) -> str | None:
+        """The calling user by a call's metadata, or None when the token is missing or
+        unknown."""
         if self.tokens is None:
             return LOCAL_USER
-        header = dict(context.invocation_metadata()).get("authorization", "")
+        header = dict(metadata or ()).get("authorization", "")
         scheme, _, token = header.partition(" ")
         if scheme.lower() != "bearer" or not token:
             return None

@@ -3,7 +3,7 @@
 A filter's size is in pixels. A 3-pixel Gaussian on a film rendered at half the height of the
 scene's own covers twice the share of the image, so the renders come out blurrier than the
 references made at the scene's size, and the loss has a floor no parameter can reach. When
-JobSpec.resolution changes a film's height, the filter is scaled by the same ratio where
+JobSpec.film_height changes a film's height, the filter is scaled by the same ratio where
 Mitsuba lets its size be set (gaussian: stddev, radius 4 stddev; tent: radius); the others
 (box is always one pixel; mitchell, catmullrom, lanczos have fixed radii) are left alone and
 the job's notes say so.

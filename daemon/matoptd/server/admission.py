@@ -25,9 +25,11 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterator
 
-from . import engine_api as api
-from .devices import format_size
-from .errors import InvalidArgument, ResourceExhausted
+from matopt_api.costs import format_size
+
+from .. import engine_api as api
+from ..errors import InvalidArgument, ResourceExhausted
+from ..settings import JobSettings
 from .image_headers import BadHeader, ImageHeader, read_header
 
 MITSUBA_MAX_SAMPLES = 1 << 32  # Mitsuba refuses a render call of this many samples or more
@@ -114,16 +116,16 @@ class Estimate:
                 f"films {format_size(self.film_bytes)}")
 
 
-def job_estimate(settings: api.JobSettings, films: dict[int, tuple[int, int]],
+def job_estimate(settings: JobSettings, films: dict[int, tuple[int, int]],
                  references: dict[int, ImageHeader]) -> Estimate:
     """The render calls of a job whose settings were validated: ``films`` are the scene's
     sensors' own film sizes, ``references`` the headers of its reference images by sensor."""
     out = Estimate()
     for ref in settings.references:
         header = references[ref.sensor]
-        width, height = api.reference_film(settings.resolution or films[ref.sensor][1],
+        width, height = api.reference_film(settings.film_height or films[ref.sensor][1],
                                            header.width, header.height)
-        why = (f"film_height {settings.resolution}" if settings.resolution else
+        why = (f"film_height {settings.film_height}" if settings.film_height else
                f"the scene's film height {height}")
         why += f" and reference '{ref.name}' ({header.width}x{header.height} px)"
         out.renders.append(Render(ref.sensor, width, height, settings.spp, "spp", why,
@@ -189,7 +191,7 @@ def reference_header(path: Path, name: str, limits: Limits, role: str = "referen
     return header
 
 
-def admit_job(settings: api.JobSettings, films: dict[int, tuple[int, int]],
+def admit_job(settings: JobSettings, films: dict[int, tuple[int, int]],
               blob_file: Callable[[str], Path], limits: Limits) -> Estimate:
     """Reads every reference's header (``blob_file``: digest -> file), and its mask's, which
     must be of the reference's size, and checks the job."""

@@ -32,11 +32,11 @@ from pathlib import Path
 from matopt_api import bundle
 from matopt_api.v1 import matopt_pb2 as pb
 
+from ..errors import InvalidArgument, NotFound
+from ..store.blobs import Blobs
 from . import meshes
-from .errors import InvalidArgument, NotFound
-from .store import Store
 
-CORNELL_BOX = Path(__file__).parent / "engine" / "cornell_box.xml"
+CORNELL_BOX = Path(__file__).parent.parent / "engine" / "cornell_box.xml"
 CORNELL_NAME = "cornell_box.xml"
 LOADABLE_NAME = bundle.RESERVED_PREFIX + "scene.xml"
 
@@ -54,7 +54,7 @@ class PreparedScene:
     includes: dict[str, bytes] = field(default_factory=dict)
 
 
-def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
+def check_bundle(blobs: Blobs, main_file: str, files: list[pb.BundleFile],
                  overrides: dict[str, str], owner: str
                  ) -> tuple[str, dict[str, str], PreparedScene]:
     """The main XML's bundle path, every bundle file's digest and the prepared scene, once the
@@ -77,12 +77,12 @@ def check_bundle(store: Store, main_file: str, files: list[pb.BundleFile],
     _no_file_as_folder(paths)
     for path, sha in paths.items():
         # Another user's upload is as absent as one never made: nothing is read before this.
-        if not store.owns(owner, sha):
+        if not blobs.owns(owner, sha):
             raise NotFound(f"bundle file '{path}' (blob 'blobs/{sha}') not found (upload it "
                            "first)")
 
     def read(path: str) -> bytes | None:
-        return store.blob_file(paths[path]).read_bytes() if path in paths else None
+        return blobs.read(paths[path]) if path in paths else None
 
     root, applied, warnings = _prepared_tree(read(main), main, overrides)
     trees = {main: root}  # every XML, with its file names written out for Mitsuba

@@ -1,6 +1,8 @@
-"""The daemon's side of a worker process: starting it, calling it, watching it, stopping it.
+"""The daemon's handle on a worker: starting it, calling it, watching it, stopping it.
 
-A worker is a child process (``python -m matoptd.worker``) holding one end of a socket pair.
+``Handle`` is what a lane needs of any worker; ``Worker`` is one as a local child process
+(``python -m matoptd.workers.serve``) holding one end of a socket pair, and
+``ray_cluster.RayWorker`` one as a Ray actor.
 ``call`` sends one engine call and waits for its answer, serving the blobs the worker fetches
 meanwhile. Whatever ends the process, a signal (a segfault inside Mitsuba, kill -9, the
 kernel's OOM killer), an exit, the memory limit or the watchdog, becomes ``WorkerLost`` with a
@@ -21,9 +23,11 @@ import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
-from .devices import Placement, format_size, worker_environment
+from matopt_api.costs import format_size
+
+from .devices import Placement, worker_environment
 
 log = logging.getLogger("matoptd.workers")
 
@@ -49,6 +53,35 @@ class CallFailed(Exception):
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)
         self.kind = kind
+
+
+class Handle(Protocol):
+    """A worker as its lane, the monitor and the listing see it."""
+
+    name: str
+    placement: Placement
+    memory_limit: int
+    state: str       # starting, idle, busy, restarting, failed
+    info: dict       # from the worker once started: variant, device, host, threads, ...
+    restarts: int
+    last_exit: str   # why it last stopped, in words
+    node: str        # the Ray node it runs on ("" for a local process)
+    gone: bool       # its node left the cluster: it is not restarted
+
+    @property
+    def pid(self) -> int: ...
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def kill(self, reason: str, cause: str) -> None: ...
+
+    def memory(self) -> int: ...
+
+    def check_memory(self) -> None: ...
+
+    def call(self, method: str, *args: Any, timeout: float | None = None) -> Any: ...
 
 
 @dataclass
@@ -87,7 +120,7 @@ class Worker:
         """Starts the process and waits until it is ready; raises WorkerLost when it is not."""
         ours, theirs = socket.socketpair()
         p = self.placement
-        command = [sys.executable, "-m", "matoptd.worker", "--fd", str(theirs.fileno()),
+        command = [sys.executable, "-m", "matoptd.workers.serve", "--fd", str(theirs.fileno()),
                    "--parent", str(os.getpid()), "--cache", str(self.cache),
                    "--variant", self.variant, "--cores", ",".join(map(str, p.cores)),
                    "--threads", str(p.threads)]

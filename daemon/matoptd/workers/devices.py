@@ -11,8 +11,6 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-from matopt_api.costs import format_size  # noqa: F401  (sizes in messages, shared with clients)
-
 
 @dataclass(frozen=True)
 class Placement:

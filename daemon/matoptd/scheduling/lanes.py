@@ -1,0 +1,483 @@
+"""Carrying out the scheduler's decisions: one lane (a thread) per worker.
+
+A lane starts its worker, then loops: ask the scheduler what the worker does next, do it
+through the worker's engine (``workers.client.EngineClient``), record what came of it in the
+job's record and the store, and tell the job's watchers. A worker that is lost (it died,
+exceeded its memory limit, or stopped answering) is settled by ``recovery`` and started
+afresh; other workers and the API never wait on it. The only thing a request waits on a lane
+for is a scene task it asked for (``Lanes.run_task``); status calls never reach a worker.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import logging
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from ..errors import DiskFull, Internal, NotFound, Unavailable, UserError
+from ..records import JobRecord, Phase, RESUME_PENDING
+from ..store.outputs import keep_image, keep_result
+from ..workers.client import EngineClient
+from ..workers.handle import Handle, WorkerLost
+from .monitor import Monitor
+from .recovery import Recovery
+from .scheduler import Action
+from .state import State
+
+log = logging.getLogger("matoptd.lanes")
+
+CHECKPOINT_ITERATIONS = 10  # a lost worker costs a job at most this many iterations...
+CHECKPOINT_SECONDS = 2.0    # ...or this much time, whichever is more
+SHUTDOWN_GRACE_S = 10.0     # on shutdown, an iteration running longer is cut off
+
+
+def stop_note(reason: str, job: JobRecord) -> str:
+    """Why a job ended, in words: a job that stops early must say so, since "SUCCEEDED" alone
+    reads as converged."""
+    s = job.settings
+    if reason == "min_error":
+        return (f"stopped at iteration {job.iteration} of {s.iterations}: the loss "
+                f"{job.best_loss:.4g} fell below min_error {s.min_error:g}")
+    if reason == "iterations":
+        return f"stopped after all {s.iterations} iterations"
+    return f"stopped at iteration {job.iteration} of {s.iterations}: {reason}"
+
+
+class Lane:
+    """One worker's lane. ``run`` is its thread; ``turn`` is one decision, carried out."""
+
+    def __init__(self, state: State, worker: Handle, watchdog: float, recovery: Recovery
+                 ) -> None:
+        self.state, self.worker, self.watchdog, self.recovery = state, worker, watchdog, recovery
+        self.scheduler, self.store = state.scheduler, state.store
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def start_worker(self) -> str:
+        """Starts the worker; returns why it failed ("" when it is ready)."""
+        w = self.worker
+        try:
+            w.start()
+        except WorkerLost as lost:
+            w.state = "failed"
+            if w.gone:
+                self.recovery.remove(w)
+            return f"{w.name} ({w.placement.describe()}): {lost.reason}"
+        with self.state.lock:
+            self.scheduler.worker_ready(w.name)
+            self.state.wake.notify_all()
+        return ""
+
+    def run(self, started: concurrent.futures.Future) -> None:
+        failure = self.start_worker()
+        started.set_result(failure)
+        if failure:
+            return
+        while (action := self._next()) is not None:
+            if not self.do(action):
+                return
+        self.close()
+        if self.worker.gone:
+            self.recovery.remove(self.worker)
+
+    def turn(self) -> Action | None:
+        """What the worker does next, done now (None: nothing to do)."""
+        with self.state.lock:
+            action = self.scheduler.next(self.worker.name)
+        if action is not None:
+            self.do(action)
+        return action
+
+    def _next(self) -> Action | None:
+        with self.state.lock:
+            while not self.state.stopping and not self.worker.gone:
+                action = self.scheduler.next(self.worker.name)
+                if action is not None:
+                    return action
+                self.state.wake.wait(1.0)
+        return None
+
+    def do(self, action: Action) -> bool:
+        """Carries out the action, whatever becomes of it; False when the lane ends (its
+        worker was lost and cannot be started again)."""
+        w = self.worker
+        try:
+            self._carry_out(action)
+        except WorkerLost as lost:
+            self.recovery.settle(w, action, lost)
+            if w.gone:
+                self.recovery.remove(w)
+            return not self.state.stopping and self.recovery.restart(w)
+        except DiskFull:
+            self.recovery.hold(w, action)
+        except Exception:  # noqa: BLE001 - a lane must outlive any one job's failure
+            log.exception("%s: %s of %s failed", w.name, action.kind, action.job)
+            self._give_up(action)
+        return True
+
+    def close(self) -> None:
+        """The daemon stops: checkpoint what the worker holds, then stop the process."""
+        with self.state.lock:
+            loaded = list(self.scheduler.workers[self.worker.name].resident)
+        engine = EngineClient(self.worker, self.watchdog)
+        for name in loaded:
+            try:
+                self.store.checkpoints.write(name, engine.checkpoint(name))
+                with self.state.lock:
+                    record = self.state.record(name)
+                    record.checkpoint = record.iteration
+            except (UserError, WorkerLost) as exc:
+                log.error("could not checkpoint %s on shutdown: %s", name, exc)
+        self.worker.stop()
+
+    def _timeout(self, action: Action) -> float:
+        """The watchdog: a call is hung when it runs far past what its job's pace predicts.
+        A load or a first iteration (kernels to compile), a scene task or the results have no
+        pace yet and get five times the base."""
+        job = self.scheduler.jobs.get(action.job)
+        if action.kind == "step" and job is not None and job.per_iteration:
+            return max(self.watchdog, 20 * action.n * job.per_iteration)
+        if action.kind in ("evict", "park") and job is not None and job.per_iteration:
+            return max(self.watchdog, 20 * job.per_iteration)
+        return 5 * self.watchdog
+
+    def _done(self, action: Action, iterations: int = 0, record: JobRecord | None = None
+              ) -> None:
+        """Tells the scheduler; saves the record it may have changed."""
+        with self.state.lock:
+            self.scheduler.done(action, iterations)
+            if record is not None:
+                self.state.save(record)
+            self.state.wake.notify_all()
+
+    # -- actions ----------------------------------------------------------------------------
+
+    def _carry_out(self, action: Action) -> None:
+        engine = EngineClient(self.worker, self._timeout(action))
+        if action.kind == "task":
+            self._task(engine, action)
+            return
+        with self.state.lock:
+            try:
+                record = self.state.record(action.job)
+            except NotFound:  # deleted meanwhile
+                self.scheduler.remove(action.job)
+                record = None
+        if record is None:
+            self._done(action)
+            return
+        act = {"load": self._load, "step": self._step, "evict": self._evict,
+               "park": self._park, "cancel": self._cancel, "results": self._results,
+               "finish": self._finish}[action.kind]
+        try:
+            act(engine, record, action)
+        except DiskFull:
+            raise
+        except UserError as exc:
+            self._fail(engine, record, action, str(exc))
+
+    def _task(self, engine: EngineClient, action: Action) -> None:
+        fn, fut = action.task
+        try:
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn(engine))
+                except WorkerLost as lost:
+                    fut.set_exception(Internal(
+                        f"the renderer process {lost.reason} while serving this request; the "
+                        "daemon and other users' jobs are unaffected"))
+                    raise
+                except BaseException as exc:  # noqa: BLE001 - handed to the caller
+                    fut.set_exception(exc)
+        finally:
+            if self.worker.state != "restarting":  # a lost worker's action is settled
+                self._done(action)
+
+    def _load(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        started = engine.start(record.name, record.settings,
+                               self.store.checkpoints.read(record.name))
+        with self.state.lock:
+            record.integrator, record.integrator_reason = (started.integrator,
+                                                           started.integrator_reason)
+            record.worker, record.sensors = action.worker, list(started.sensors)
+            record.shapes = dict(started.shapes)
+            record.notes.extend(n for n in started.notes if n not in record.notes)
+            if record.resumed_from == RESUME_PENDING:
+                record.resumed_from = (f"checkpoint at iteration {started.iteration}"
+                                       if started.iteration else "from the start")
+            # The first checkpoint after a load is due after CHECKPOINT_ITERATIONS, however
+            # fast they are.
+            record.checkpoint = started.iteration
+            self.scheduler.jobs[record.name].checkpointed = -math.inf
+            self.store.truncate_history(record.name, started.iteration)  # they run again
+        self._done(action, record=record)
+
+    def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        progress = engine.step(record.name, action.n)
+        self.store.add_iterations(record.name, progress.records)
+        with self.state.lock:
+            last = progress.records[-1]
+            record.iteration, record.loss = last.iteration + 1, last.loss
+            record.best_iteration = progress.best_iteration
+            record.best_loss = progress.best_loss if math.isfinite(progress.best_loss) else 0.0
+            record.elapsed, record.counters = progress.seconds, progress.counters
+            record.updated = self.state.clock.time()
+            self.store.put_job(record)
+            job, snapshot = self.scheduler.jobs[record.name], record.snapshot()
+        # The job after its iterations: clients show its best_iteration/best_loss rather than
+        # compute their own (for dual_buffer the best is a windowed mean, not a record's loss).
+        self.state.events.publish(record.name, [*progress.records, snapshot])
+        if progress.done:
+            self._end(engine, record, action, Phase.SUCCEEDED, progress.stop_reason,
+                      len(progress.records))
+            return
+        now = self.state.clock.monotonic()
+        if (record.iteration - (record.checkpoint or 0) >= CHECKPOINT_ITERATIONS
+                and now - job.checkpointed >= CHECKPOINT_SECONDS):
+            self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
+            record.checkpoint, job.checkpointed = record.iteration, now
+        self._done(action, len(progress.records))
+
+    def _evict(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        """The job waits for its next slice: the worker's memory goes back, and the job
+        continues later, anywhere, bit for bit."""
+        self._unload(engine, record)
+        with self.state.lock:
+            self.store.put_job(record)  # (its watchers are told nothing new)
+        self._done(action)
+
+    def _park(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        """As an eviction, but the job is PAUSED (or, cancelled meanwhile, it is loaded again
+        to end)."""
+        self._unload(engine, record)
+        self._done(action, record=record)
+
+    def _unload(self, engine: EngineClient, record: JobRecord) -> None:
+        self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
+        with self.state.lock:
+            record.checkpoint = record.iteration
+            self.scheduler.jobs[record.name].checkpointed = self.state.clock.monotonic()
+        engine.release(record.name)
+
+    def _cancel(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        self._end(engine, record, action, Phase.CANCELLED, "cancelled")
+
+    def _end(self, engine: EngineClient, record: JobRecord, action: Action, outcome: Phase,
+             reason: str, iterations: int = 0) -> None:
+        """The iterations are over: the end phase begins, one "results" action per rendered
+        sensor (scheduled like iterations, so other jobs go on between them), then "finish".
+        A checkpoint first: a job whose worker is lost in its end phase is loaded again as its
+        iterations left it, so its results are still those of its best and last iterations."""
+        if record.iteration:
+            self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
+        with self.state.lock:
+            if record.iteration:
+                record.checkpoint = record.iteration
+            self.scheduler.done(action, iterations)
+            self.scheduler.end(record.name, outcome, reason,
+                               len(record.sensors) if record.iteration else 0)
+            self.state.save(record)
+            self.state.wake.notify_all()
+
+    def _results(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        """One sensor's result images, kept at once; the job's notes count them."""
+        made = engine.result_images(record.name, record.sensors[action.n])
+        kept = {which: [keep_image(i, self._put(record)) for i in images]
+                for which, images in made.items()}
+        with self.state.lock:
+            for which, images in kept.items():
+                record.ending.images.setdefault(which, []).extend(images)
+        self._done(action, record=record)
+
+    def _finish(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        ending = record.ending
+        cancelled = ending.outcome is Phase.CANCELLED
+        finished = engine.finish(record.name, self.store.history(record.name), cancelled,
+                                 False)
+        scene = self.store.get_scene(record.owner, record.scene)
+        for result in finished.results:
+            self.store.put_result(keep_result(record.name, result, record.shapes, scene,
+                                              ending.images.get(result.which, []),
+                                              self._put(record)))
+        engine.release(record.name)
+        with self.state.lock:
+            if cancelled:
+                record.notes.append(f"cancelled at iteration {record.iteration}; the results "
+                                    "show the best and the last iteration run")
+            record.notes.extend(finished.notes)
+            if not cancelled:
+                record.notes.append(stop_note(ending.reason, record))
+            record.counters = finished.counters
+            self.scheduler.done(action)  # the job is its outcome now
+            self.state.save(record)
+            self.state.wake.notify_all()
+        log.info("%s %s at iteration %d (%s)", record.name, record.phase.name,
+                 record.iteration, ending.reason)
+
+    def _put(self, record: JobRecord) -> Callable[[bytes], str]:
+        return lambda data: self.store.blobs.put(data, record.owner)
+
+    # -- failures ---------------------------------------------------------------------------
+
+    def _fail(self, engine: EngineClient | None, record: JobRecord, action: Action,
+              message: str) -> None:
+        if engine is not None and action.kind != "load":
+            try:
+                engine.release(record.name)
+            except UserError:
+                pass
+        with self.state.lock:
+            self.scheduler.fail(record, message)
+            self.scheduler.done(action)
+            self.state.save(record)
+            self.state.wake.notify_all()
+
+    def _give_up(self, action: Action) -> None:
+        """An unexpected failure (a bug): the job fails with what is known, the lane goes on."""
+        try:
+            with self.state.lock:
+                record = self.state.record(action.job) if action.job else None
+            if record is not None:
+                self._fail(EngineClient(self.worker, self.watchdog), record, action,
+                           "internal error in the daemon; the job was stopped (see its log)")
+                return
+        except DiskFull:
+            self.recovery.hold(self.worker, action)
+            return
+        except Exception:  # noqa: BLE001 - already logged once
+            log.exception("%s: could not record the failure", self.worker.name)
+        with self.state.lock:
+            if action.job:
+                self.scheduler.remove(action.job)
+            self.scheduler.done(action)
+            self.state.wake.notify_all()
+
+
+@dataclass
+class WorkerStatus:
+    """A worker as GetServerInfo shows it: the caller's own jobs by name, others counted."""
+
+    name: str
+    state: str
+    variant: str
+    device: str
+    host: str
+    pid: int
+    jobs: list[str]
+    job_count: int
+    restarts: int
+    last_exit: str
+    memory: int
+    memory_limit: int
+    threads: int
+    node: str = ""
+
+
+class Lanes:
+    """Every worker's lane, and the workers' life: started at once, added when a Ray node
+    joins, retired when it leaves, stopped with the daemon."""
+
+    def __init__(self, state: State, workers: list[Handle], watchdog: float,
+                 recovery: Recovery) -> None:
+        self.state, self.watchdog, self.recovery = state, watchdog, recovery
+        self.state.workers = {w.name: w for w in workers}
+        for w in workers:
+            state.scheduler.add_worker(w.name)
+        self._threads: list[threading.Thread] = []
+        self.monitor = Monitor(state, self.recovery,
+                               lambda: any(t.is_alive() for t in self._threads))
+
+    def start(self) -> list[str]:
+        """Starts every worker (in its lane) and waits for each to be ready or to fail;
+        returns why the ones that failed did. The lanes of failed workers end."""
+        started = [self._start_lane(w) for w in self.state.workers.values()]
+        failures = [f.result() for f in started]
+        self.monitor.start()
+        return [f for f in failures if f]
+
+    def add_worker(self, w: Handle) -> None:
+        """A worker that joined while the daemon runs (a Ray node came up): its lane starts
+        it and it takes work once ready."""
+        with self.state.lock:
+            if self.state.stopping:
+                return
+            # A new dict rather than a change to it: other threads iterate the old one.
+            self.state.workers = {**self.state.workers, w.name: w}
+            self.state.scheduler.add_worker(w.name)
+        self._start_lane(w)
+
+    def retire(self, name: str, why: str) -> None:
+        """The worker's node left: it is not restarted, and its lane ends once whatever it
+        was doing has been settled (a call in flight fails when its process goes)."""
+        w = self.state.workers.get(name)
+        if w is not None and not w.gone:
+            w.gone, w.last_exit = True, why
+            self.state.notify()
+
+    def _start_lane(self, w: Handle) -> concurrent.futures.Future:
+        started: concurrent.futures.Future = concurrent.futures.Future()
+        lane = Lane(self.state, w, self.watchdog, self.recovery)
+        thread = threading.Thread(target=lane.run, args=(started,), name=f"lane-{w.name}",
+                                  daemon=True)
+        self._threads.append(thread)
+        thread.start()
+        return started
+
+    @property
+    def ready(self) -> bool:
+        return any(w.state in ("idle", "busy") for w in self.state.workers.values())
+
+    @property
+    def serving(self) -> bool:
+        """Whether the service can do work: a worker runs and results can be recorded."""
+        return (self.ready and not self.state.scheduler.held
+                and self.state.store.disk.full_since is None)
+
+    def stop(self) -> None:
+        """Finishes the iterations in flight (cutting off any that runs past a grace period),
+        checkpoints loaded jobs, marks running ones INTERRUPTED and stops the workers."""
+        with self.state.lock:
+            self.state.stopping = True
+            self.state.stopped.set()
+            self.state.wake.notify_all()
+        deadline = self.state.clock.monotonic() + SHUTDOWN_GRACE_S
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - self.state.clock.monotonic()))
+        for w in self.state.workers.values():
+            if w.state == "busy":
+                w.kill("was stopped: the daemon shut down during a long iteration", "stopped")
+        for thread in self._threads:
+            thread.join()
+        self.recovery.interrupt_all("the daemon was shut down")
+
+    async def run_task(self, fn: Callable[[EngineClient], Any]) -> Any:
+        """Runs ``fn(engine)`` on the next free worker, before any job's next iteration."""
+        fut: concurrent.futures.Future = concurrent.futures.Future()
+        with self.state.lock:
+            if self.state.stopping:
+                raise Unavailable("the daemon is shutting down")
+            if self.state.scheduler.held:
+                raise DiskFull()
+            if not any(w.state != "failed" for w in self.state.workers.values()):
+                raise Unavailable("no renderer worker is running (matopt info lists them); "
+                                  "try again once one is: jobs already created wait for it")
+            self.state.scheduler.add_task((fn, fut))
+            self.state.wake.notify_all()
+        return await asyncio.wrap_future(fut)
+
+    def listing(self, user: str) -> list[WorkerStatus]:
+        out = []
+        with self.state.lock:
+            for w in self.state.workers.values():
+                loaded = list(self.state.scheduler.workers[w.name].resident)
+                mine = [j for j in loaded if self.state.scheduler.jobs[j].user == user]
+                out.append(WorkerStatus(
+                    w.name, w.state, w.info.get("variant", ""),
+                    w.info.get("device", w.placement.describe()), w.info.get("host", ""),
+                    w.pid, mine, len(loaded), w.restarts, w.last_exit, w.memory(),
+                    w.memory_limit, w.info.get("threads", w.placement.threads), w.node))
+        return out

@@ -1,0 +1,56 @@
+"""A thread that watches what no lane can see from inside a call: workers over their memory
+limit, cancels that an iteration in flight keeps waiting, and the disk's space coming back
+after it filled up."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable
+
+from ..errors import DiskFull
+from .recovery import Recovery
+from .state import State
+
+log = logging.getLogger("matoptd.monitor")
+
+PERIOD_S = 0.1
+CANCEL_GRACE_S = 3.0  # a cancel inside a long iteration stops the worker after this
+
+
+class Monitor:
+    def __init__(self, state: State, recovery: Recovery, lanes_alive: Callable[[], bool]
+                 ) -> None:
+        self.state, self.recovery, self._lanes_alive = state, recovery, lanes_alive
+        self._thread = threading.Thread(target=self._run, name="matoptd-monitor", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not (self.state.stopping and not self._lanes_alive()):
+            self.check()
+            time.sleep(PERIOD_S)
+
+    def check(self) -> None:
+        """One look at everything."""
+        state = self.state
+        with state.lock:
+            late = state.scheduler.late_cancels(CANCEL_GRACE_S)
+            held = state.scheduler.held
+        workers = state.workers
+        for w in workers.values():
+            if w.state == "busy":
+                w.check_memory()
+        disk = state.store.disk
+        if (held or disk.full_since is not None) and disk.space_back() and held:
+            log.info("space on the data directory's disk again: jobs go on")
+            try:
+                self.recovery.unhold()
+            except DiskFull:
+                pass  # filled up again meanwhile
+        for name in late:
+            if name in workers:
+                workers[name].kill("was stopped: its job was cancelled during a long "
+                                   "iteration", "stopped")

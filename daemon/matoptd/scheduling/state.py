@@ -1,0 +1,110 @@
+"""What job control, the lanes, recovery and the monitor share: the scheduler (who runs what,
+and each active job's record), the store (what survives), the watchers, the clock, and one lock
+over all of them. Everything here is injected, so tests run it with a fake clock, a fake
+store and no threads.
+
+``JobStore`` is what scheduling needs of a store, no more: ``store.Store`` is one, and the
+unit tests have one in memory.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Iterable, Protocol
+
+from ..engine_api import IterationRecord
+from ..errors import NotFound
+from ..records import JobRecord, Phase, ResultRecord, SceneRecord
+from ..workers.handle import Handle
+from .events import Events
+from .scheduler import Scheduler
+
+
+class Clock(Protocol):
+    """Monotonic seconds for decisions, wall-clock seconds for what records show (the
+    ``time`` module is one)."""
+
+    def monotonic(self) -> float: ...
+
+    def time(self) -> float: ...
+
+
+class BlobWriter(Protocol):
+    def put(self, data: bytes, owner: str) -> str: ...
+
+
+class CheckpointFiles(Protocol):
+    def write(self, job: str, data: bytes) -> None: ...
+
+    def read(self, job: str) -> bytes | None: ...
+
+    def exists(self, job: str) -> bool: ...
+
+
+class DiskState(Protocol):
+    full_since: float | None
+
+    def space_back(self) -> bool: ...
+
+
+class JobStore(Protocol):
+    blobs: BlobWriter
+    checkpoints: CheckpointFiles
+    disk: DiskState
+
+    def add_job(self, job: JobRecord, request_id: str | None) -> None: ...
+
+    def put_job(self, job: JobRecord) -> None: ...
+
+    def get_job(self, name: str, owner: str | None = None) -> JobRecord: ...
+
+    def list_jobs(self, owner: str | None, offset: int = 0, limit: int = -1,
+                  phases: Iterable[Phase] = ()) -> list[JobRecord]: ...
+
+    def delete_job(self, name: str) -> None: ...
+
+    def add_iterations(self, job: str, records: list[IterationRecord]) -> None: ...
+
+    def history(self, job: str, offset: int = 0, limit: int = -1
+                ) -> list[IterationRecord]: ...
+
+    def truncate_history(self, job: str, keep_below: int) -> None: ...
+
+    def put_result(self, result: ResultRecord) -> None: ...
+
+    def get_scene(self, owner: str, name: str) -> SceneRecord: ...
+
+
+class State:
+    def __init__(self, store: JobStore, scheduler: Scheduler, events: Events | None = None,
+                 clock: Clock = time) -> None:
+        self.store, self.scheduler = store, scheduler
+        self.events = events or Events()
+        self.clock = clock
+        self.workers: dict[str, Handle] = {}  # replaced whole, never changed in place
+        self.lock = threading.RLock()
+        self.wake = threading.Condition(self.lock)
+        self.stopping = False
+        self.stopped = threading.Event()  # set with ``stopping``: cuts waits short
+
+    def record(self, name: str, owner: str | None = None) -> JobRecord:
+        """The job's record: the scheduler's while it holds the job (the one that changes),
+        else the store's. With ``owner``, another user's job is NOT_FOUND, as if absent."""
+        job = self.scheduler.jobs.get(name)
+        if job is None:
+            return self.store.get_job(name, owner)
+        if owner is not None and job.user != owner:
+            raise NotFound(f"job '{name}' not found")
+        return job.record
+
+    def save(self, record: JobRecord) -> None:
+        """Persists the record as it stands and tells its watchers."""
+        record.updated = self.clock.time()
+        self.store.put_job(record)
+        self.events.publish(record.name, [record.snapshot()])
+
+    def notify(self) -> None:
+        """Wakes the lanes: there may be something to do."""
+        with self.lock:
+            self.wake.notify_all()

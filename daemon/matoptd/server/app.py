@@ -1,0 +1,70 @@
+"""The gRPC server: the matopt services behind their interceptors, health and reflection.
+
+Requests are checked in the caller's terms before any engine work is queued; engine work goes
+to a worker through the lanes. This process never imports Mitsuba or Dr.Jit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
+
+from ..scheduling.lanes import Lanes
+from . import reflection
+from .auth import Authenticator
+from .backend import Backend
+from .blob_service import BlobService
+from .info_service import ServerService
+from .interceptors import Authentication, Errors
+from .job_service import JobService
+from .scene_service import SceneService
+
+log = logging.getLogger("matoptd.server")
+
+MAX_MESSAGE = 64 << 20
+SERVICES = ("BlobService", "SceneService", "JobService", "ServerService")
+
+
+def build(backend: Backend, auth: Authenticator) -> tuple[grpc.aio.Server,
+                                                          health.aio.HealthServicer, list[str]]:
+    """The server with every service added; returns it, its health servicer and the names
+    health reports on ("" for the whole server)."""
+    names = [pb.DESCRIPTOR.services_by_name[n].full_name for n in SERVICES]
+    server = grpc.aio.server(
+        interceptors=[Authentication(auth, names), Errors(names)],
+        options=[("grpc.max_receive_message_length", MAX_MESSAGE),
+                 ("grpc.max_send_message_length", MAX_MESSAGE)])
+    rpc.add_BlobServiceServicer_to_server(BlobService(backend), server)
+    rpc.add_SceneServiceServicer_to_server(SceneService(backend), server)
+    rpc.add_JobServiceServicer_to_server(JobService(backend), server)
+    rpc.add_ServerServiceServicer_to_server(ServerService(backend), server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable(server, [*names, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name])
+    return server, health_servicer, ["", *names]
+
+
+async def report_health(servicer: health.aio.HealthServicer, names: list[str], lanes: Lanes,
+                        stop: asyncio.Event) -> None:
+    """NOT_SERVING while the service cannot do work (no worker runs, or the disk is full),
+    so that a load balancer or a supervisor sees it; SERVING again when it can."""
+    serving = True
+    while not stop.is_set():
+        now = lanes.serving
+        if now != serving:
+            serving = now
+            status = (health_pb2.HealthCheckResponse.SERVING if now
+                      else health_pb2.HealthCheckResponse.NOT_SERVING)
+            for name in names:
+                await servicer.set(name, status)
+            log.warning("health: %s", "SERVING" if now else "NOT_SERVING")
+        try:
+            await asyncio.wait_for(stop.wait(), 0.5)
+        except asyncio.TimeoutError:
+            pass

@@ -1,0 +1,32 @@
+"""ServerService: what the daemon offers and who is calling; its workers with their state."""
+
+from __future__ import annotations
+
+from matoptd import __version__
+from matopt_api import enums
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
+
+from .backend import Backend
+from .convert import worker_to_pb
+from .interceptors import caller
+
+
+class ServerService(rpc.ServerServiceServicer):
+    def __init__(self, backend: Backend) -> None:
+        self.lanes = backend.lanes
+
+    async def GetServerInfo(self, request, context):
+        user = caller()
+        workers = [worker_to_pb(w) for w in self.lanes.listing(user)]
+        first = next((w for w in workers if w.variant), pb.Worker())
+        return pb.ServerInfo(
+            version=__version__, variant=first.variant, device=first.device, user=user,
+            workers=workers, losses=enums.short_names(pb.Loss),
+            schedules=enums.short_names(pb.Schedule),
+            sensor_modes=enums.short_names(pb.SensorMode),
+            integrators=["prb", "prbvolpath", "prb_projective", "direct_projective"],
+            capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
+                          "checkpoint-resume", "watch", "render", "multi-user", "restart",
+                          "ground-truth-errors", "image-error", "optimized-scene-export",
+                          "worker-processes"])

@@ -1,0 +1,156 @@
+"""What every call of the matopt services goes through before and after its handler, as gRPC
+server interceptors: who is calling (``Authentication``), and the request's fields checked and
+the daemon's errors turned into status codes (``Errors``). Health and reflection, services of
+their own, pass untouched. A handler reads its caller with ``caller()``.
+
+The daemon's errors (``errors.py``) become status codes here and nowhere else: each kind its
+code, with its message as it stands. Anything else that escapes a handler is INTERNAL, logged,
+and confined to that one request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+from typing import Any, AsyncIterator, Awaitable, Callable
+
+import grpc
+from google.protobuf.message import Message
+
+from ..errors import (FailedPrecondition, Internal, InvalidArgument, NotFound,
+                      ResourceExhausted, Unavailable, UserError)
+from . import fields
+from .auth import Authenticator
+
+log = logging.getLogger("matoptd.server")
+
+UNAUTHENTICATED = "missing or unknown token: send 'authorization: Bearer <token>'"
+CODES = {InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
+         NotFound: grpc.StatusCode.NOT_FOUND,
+         FailedPrecondition: grpc.StatusCode.FAILED_PRECONDITION,
+         ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
+         Unavailable: grpc.StatusCode.UNAVAILABLE,
+         Internal: grpc.StatusCode.INTERNAL}
+
+_caller: contextvars.ContextVar[str] = contextvars.ContextVar("caller")
+
+Continuation = Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler | None]]
+
+
+def caller() -> str:
+    """The user of the call being served (set by ``Authentication``)."""
+    return _caller.get()
+
+
+def code(exc: UserError) -> grpc.StatusCode:
+    for kind in type(exc).__mro__:
+        if kind in CODES:
+            return CODES[kind]
+    return grpc.StatusCode.INVALID_ARGUMENT
+
+
+def _ours(details: grpc.HandlerCallDetails, services: frozenset[str]) -> bool:
+    return details.method.split("/")[1] in services  # "/matopt.v1.JobService/GetJob"
+
+
+class Authentication(grpc.aio.ServerInterceptor):
+    """Every call of ``services`` needs a known token; a call without one is refused with
+    UNAUTHENTICATED before anything of it is read. The caller's name is kept for the handler
+    (gRPC runs the interceptors and the handler in one contextvars context)."""
+
+    def __init__(self, auth: Authenticator, services: list[str]) -> None:
+        self.auth, self.services = auth, frozenset(services)
+
+    async def intercept_service(self, continuation: Continuation,
+                                details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler:
+        handler = await continuation(details)
+        if handler is None or not _ours(details, self.services):
+            return handler
+        user = self.auth.user(details.invocation_metadata)
+        if user is None:
+            return _wrapped(handler, _refuse, _refuse_stream)
+        _caller.set(user)
+        return handler
+
+
+async def _refuse(request: Any, context: grpc.aio.ServicerContext) -> None:
+    await context.abort(grpc.StatusCode.UNAUTHENTICATED, UNAUTHENTICATED)
+
+
+async def _refuse_stream(request: Any, context: grpc.aio.ServicerContext
+                         ) -> AsyncIterator[Any]:
+    await context.abort(grpc.StatusCode.UNAUTHENTICATED, UNAUTHENTICATED)
+    yield  # an async generator, as a streaming handler is
+
+
+class Errors(grpc.aio.ServerInterceptor):
+    """Checks each request's fields (``fields.check``) and answers the daemon's errors with
+    their status codes, around every handler of ``services``."""
+
+    def __init__(self, services: list[str]) -> None:
+        self.services = frozenset(services)
+
+    async def intercept_service(self, continuation: Continuation,
+                                details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler:
+        handler = await continuation(details)
+        if handler is None or not _ours(details, self.services):
+            return handler
+        if handler.response_streaming:
+            inner_stream = handler.unary_stream
+
+            async def stream(request, context):
+                await _guard(context, lambda: _check(request))
+                responses = inner_stream(request, context).__aiter__()
+                while (item := await _guard(context, lambda: _next(responses))) is not _END:
+                    yield item
+            return _wrapped(handler, None, stream)
+        inner = handler.unary_unary or handler.stream_unary
+
+        async def unary(request, context):
+            await _guard(context, lambda: _check(request))
+            return await _guard(context, lambda: inner(request, context))
+        return _wrapped(handler, unary, None)
+
+
+_END = object()
+
+
+async def _check(request: Any) -> None:
+    if isinstance(request, Message):  # not the chunk stream of UploadBlob
+        fields.check(request)
+
+
+async def _next(responses: AsyncIterator[Any]) -> Any:
+    try:
+        return await responses.__anext__()
+    except StopAsyncIteration:
+        return _END
+
+
+async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[Any]]) -> Any:
+    """Runs one step of a handler, turning the daemon's errors into statuses."""
+    try:
+        return await fn()
+    except UserError as exc:
+        await context.abort(code(exc), str(exc))
+    except (grpc.aio.AbortError, asyncio.CancelledError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - one bad request must not take others down
+        log.exception("internal error")
+        await context.abort(grpc.StatusCode.INTERNAL,
+                            f"internal error: {type(exc).__name__}: {exc}")
+
+
+def _wrapped(handler: grpc.RpcMethodHandler, unary: Callable | None,
+             stream: Callable | None) -> grpc.RpcMethodHandler:
+    """The handler with its behaviour replaced: ``unary`` for a single response (a single
+    request or a stream of them), ``stream`` for a response stream. This API has no call
+    with streams both ways."""
+    kinds = {"request_deserializer": handler.request_deserializer,
+             "response_serializer": handler.response_serializer}
+    if handler.response_streaming:
+        return grpc.unary_stream_rpc_method_handler(stream, **kinds)
+    if handler.request_streaming:
+        return grpc.stream_unary_rpc_method_handler(unary, **kinds)
+    return grpc.unary_unary_rpc_method_handler(unary, **kinds)

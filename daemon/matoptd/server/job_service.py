@@ -1,0 +1,155 @@
+"""JobService: a job admitted here (its spec checked and defaulted once, its cost estimated,
+its references read by a worker), then run by the scheduling; status calls (GetJob, ListJobs,
+WatchJob, history, results) are served from the store and the watchers' events, never from a
+worker."""
+
+from __future__ import annotations
+
+import logging
+import uuid
+
+from google.protobuf import empty_pb2
+
+from matopt_api import costs, enums
+from matopt_api.v1 import matopt_pb2 as pb
+from matopt_api.v1 import matopt_pb2_grpc as rpc
+
+from ..errors import FailedPrecondition
+from ..records import ACTIVE, JobRecord, Phase
+from . import admission, convert, job_spec
+from .backend import Backend
+from .interceptors import caller
+from .paging import next_token, page, resource
+from .scene_service import films
+
+log = logging.getLogger("matoptd.server")
+
+HISTORY_PAGE, MAX_HISTORY_PAGE = 1000, 10000
+
+
+def which(value: int) -> str:
+    """"best" or "last" (UNSPECIFIED: best)."""
+    return enums.short_name(pb.Which, value or pb.WHICH_BEST).lower()
+
+
+class JobService(rpc.JobServiceServicer):
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+        self.store, self.control = backend.store, backend.control
+
+    async def CreateJob(self, request, context):
+        user = caller()
+        if request.request_id:
+            existing = self.store.job_by_request(user, request.request_id)
+            if existing:
+                return convert.job_to_pb(existing)
+        self._admit_another(user)
+        scene = self.store.get_scene(user, resource("scenes", request.spec.scene))
+        self.store.blobs.check_room(user)
+        # Before any other check: another user's blob must fail exactly as a missing one.
+        for sha in sorted(job_spec.given_blobs(request.spec)):
+            self.store.blobs.file(sha, user)
+        listing = self.store.scene_parameters(user, scene.name)
+        params = {p.key: p for p in listing}
+        start = self._start_from(user, request) if request.initial_from_job else None
+        built = job_spec.build(request.spec, scene, params, self.store.blobs.reader(user),
+                               start, self.backend.limits.max_samples)
+        settings = built.settings
+        estimate = admission.admit_job(settings, films(scene), self.store.blobs.file,
+                                       self.backend.limits)
+        with self.backend.tasks.hold(user):
+            await self.backend.lanes.run_task(
+                lambda engine: engine.check_references(settings.references))
+        self._admit_another(user)  # again: other requests of this user may have come first
+        job = JobRecord(name=f"jobs/{uuid.uuid4().hex[:12]}", owner=user, scene=scene.name,
+                        settings=settings,
+                        shapes={p.key: list(params[p.key].shape) for p in settings.parameters})
+        job.notes.extend(built.notes)
+        job.notes.extend(costs.parameter_cost(p.key, params[p.key].shape,
+                                              estimate.samples_per_iteration)
+                         for p in settings.parameters if costs.is_large(params[p.key].shape))
+        created = self.control.create(job, request.request_id)
+        log.info("%s of %s admitted: %s", job.name, user, estimate.summary)
+        return convert.job_to_pb(created)
+
+    def _admit_another(self, user: str) -> None:
+        """Refuses a user's job beyond --max-jobs-per-user active ones."""
+        admission.check_jobs(user, self.store.count_jobs(user, ACTIVE), self.backend.limits)
+
+    def _start_from(self, user: str, request: pb.CreateJobRequest) -> job_spec.StartFrom:
+        """A restart: parameters without an initial value of their own start where another
+        job's result left them (values inline, large ones by blob: nothing is re-uploaded)."""
+        source = resource("jobs", request.initial_from_job)
+        self.store.get_job(source, user)
+        chosen = which(request.initial_from_which)
+        result = self.store.result(source, chosen)
+        if result is None:
+            raise FailedPrecondition(f"job '{source}' has no {chosen.upper()} result to start "
+                                     "from")
+        return job_spec.StartFrom(source, chosen, result)
+
+    async def GetJob(self, request, context):
+        return convert.job_to_pb(self.store.get_job(resource("jobs", request.name), caller()))
+
+    async def ListJobs(self, request, context):
+        offset, limit = page(request.page_token, request.page_size)
+        found = self.store.list_jobs(caller(), offset, limit, convert.phases(request.state))
+        return pb.ListJobsResponse(jobs=[convert.job_to_pb(j) for j in found],
+                                   next_page_token=next_token(offset, limit, len(found)))
+
+    async def DeleteJob(self, request, context):
+        self.control.delete(caller(), resource("jobs", request.name))
+        return empty_pb2.Empty()
+
+    async def PauseJob(self, request, context):
+        return convert.job_to_pb(self.control.pause(caller(), resource("jobs", request.name)))
+
+    async def ResumeJob(self, request, context):
+        user, name = caller(), resource("jobs", request.name)
+        if self.store.get_job(name, user).phase in (Phase.PAUSED, Phase.INTERRUPTED):
+            self._admit_another(user)  # it queues again
+        return convert.job_to_pb(self.control.resume(user, name))
+
+    async def CancelJob(self, request, context):
+        return convert.job_to_pb(self.control.cancel(caller(), resource("jobs", request.name)))
+
+    async def WatchJob(self, request, context):
+        user, name = caller(), resource("jobs", request.name)
+        self.store.get_job(name, user)  # NOT_FOUND before subscribing
+        events = self.backend.events
+        queue = events.subscribe(name)
+        try:
+            job = self.store.get_job(name, user)
+            yield pb.JobEvent(job=convert.job_to_pb(job))
+            if job.phase.final:
+                return
+            while True:
+                event = await queue.get()
+                if isinstance(event, JobRecord):
+                    job = event
+                yield convert.event_to_pb(event, job)
+                if event is job and job.phase.final:
+                    return
+        finally:
+            events.unsubscribe(name, queue)
+
+    async def GetJobResult(self, request, context):
+        name = resource("jobs", request.name)
+        job = self.store.get_job(name, caller())
+        chosen = which(request.which)
+        result = self.store.result(name, chosen)
+        if result is None:
+            raise FailedPrecondition(f"job '{name}' has no {chosen.upper()} result "
+                                     f"({job.phase.state}): results exist once a job "
+                                     "succeeded or was cancelled after its first iteration")
+        return convert.result_to_pb(result, job)
+
+    async def GetJobHistory(self, request, context):
+        name = resource("jobs", request.name)
+        job = self.store.get_job(name, caller())
+        offset, limit = page(request.page_token, request.page_size, HISTORY_PAGE,
+                             MAX_HISTORY_PAGE)
+        found = self.store.history(name, offset, limit)
+        return pb.GetJobHistoryResponse(iterations=[convert.iteration_to_pb(r, job)
+                                                    for r in found],
+                                        next_page_token=next_token(offset, limit, len(found)))

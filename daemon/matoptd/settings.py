@@ -1,0 +1,138 @@
+"""What a job is asked to do: its scene, references and parameters, and every setting with its
+default, declared once, here.
+
+The API's JobSpec becomes a ``JobSettings`` once, at the edge (``server/job_spec.py``), where
+what the request leaves out takes these defaults; from then on it travels as it is: the store
+keeps it (JSON), the scheduler and the lanes hand it on, and a worker's engine reads it. The
+daemon's answer (``Job.spec``) is built back from it, so a client learns there what was
+applied. Defaults that depend on the scene, a parameter's range and learning rate, come from
+its listing (``engine_api.ParameterInfo``), which the engine made when the scene was created.
+
+Inputs are named by content, as everything that crosses to a worker is (``engine_api``): files
+and large values by SHA-256 digest, which the worker fetches, small values inline. Pure data
+and numpy: both processes import it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+# Names as the API spells them (lower case of its enums' short names).
+LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_error",
+          "multiscale_mse")
+SCHEDULES = ("cosine", "constant")
+SENSOR_MODES = ("accumulate", "step_per_sensor")
+
+
+@dataclass(frozen=True)
+class SceneInput:
+    """A scene bundle by content. ``files`` maps bundle paths to digests and includes
+    ``main_file``, the XML Mitsuba loads (already prepared by the daemon: stable ids, float
+    textures). ``key`` names this exact content, so a worker can keep what it laid out."""
+
+    key: str
+    main_file: str
+    files: dict[str, str]
+    overrides: dict[str, str]
+    display: str  # the user's name for the scene, for messages
+
+    @classmethod
+    def of(cls, main_file: str, files: dict[str, str], overrides: dict[str, str],
+           display: str) -> SceneInput:
+        key = hashlib.sha256(json.dumps([main_file, sorted(files.items()),
+                                         sorted(overrides.items())]).encode()).hexdigest()[:32]
+        return cls(key, main_file, dict(files), dict(overrides), display)
+
+
+@dataclass(frozen=True)
+class Values:
+    """A parameter's values given with a job, flat in Mitsuba's order: inline, or for large
+    ones (textures, grids) a .npy blob by digest, which a worker fetches."""
+
+    inline: list[float] = field(default_factory=list)
+    sha256: str = ""
+
+
+@dataclass(frozen=True)
+class ReferenceInput:
+    """A reference image and what leaves its pixels out of the loss: a mask image of its size
+    (weights in [0, 1]) and/or its own alpha channel."""
+
+    sensor: int
+    sha256: str  # PNG/JPEG, 8 or 16 bit (sRGB), or OpenEXR (linear)
+    name: str    # the user's file name, for messages
+    mask_sha256: str = ""  # "": no mask image
+    mask_name: str = ""
+    alpha_mask: bool = False
+
+
+@dataclass(frozen=True)
+class ParameterSetting:
+    """One parameter to optimize. Rate and range default to the scene's listing of it."""
+
+    key: str
+    learning_rate: float
+    lo: float
+    hi: float
+    initial: Values | None = None  # None: the scene's value
+    smoothness: float = 0.0        # weight of a texture's or grid's smoothness term
+
+
+@dataclass(frozen=True)
+class JobSettings:
+    scene: SceneInput
+    references: list[ReferenceInput]
+    parameters: list[ParameterSetting]
+    loss: str = "mse"            # one of LOSSES
+    iterations: int = 100
+    # Off: a fixed threshold ends dim scenes long before they converge (their loss is small
+    # from the start), so a job runs its iterations unless its owner asks for one.
+    min_error: float = 0.0
+    spp: int = 16                # see engine/parameters.DEFAULT_LEARNING_RATE: one measurement
+    seed: int = 0                # iteration i renders with seed + i
+    learning_rate: float | None = None  # for parameters given none; None: the scene's default
+    schedule: str = "cosine"     # one of SCHEDULES: rates decay along a half cosine to a tenth
+    sensor_mode: str = "accumulate"  # one of SENSOR_MODES
+    clamp: bool = False
+    film_height: int = 0         # 0: the scene's; widths follow each reference's aspect ratio
+    truth: dict[str, Values] = field(default_factory=dict)  # known values, for errors
+    image_error_every: int = 0   # 0: never
+    image_error_spp: int = 64
+    fit_exposure: bool = False   # one RGB gain per reference: render * gain ~ reference
+    # The most samples (film pixels x spp) one render call may take, the daemon's limit when
+    # the job was admitted; 0: no limit. Results render at engine_api.result_spp within it.
+    max_samples: int = 0
+
+
+def read_values(values: Values, read: Callable[[str], bytes], what: str) -> np.ndarray:
+    """The components as a flat float32 array, the blob read by digest with ``read``.
+    ValueError naming ``what`` when a .npy is not an array of finite numbers."""
+    if not values.sha256:
+        return np.asarray(values.inline, dtype=np.float32)
+    data = read(values.sha256)  # its own errors (a blob not found) as they are
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except Exception as exc:  # noqa: BLE001 - numpy raises ValueError, OSError, EOFError...
+        raise ValueError(f"{what} is not a readable .npy array: "
+                         f"{str(exc).strip() or type(exc).__name__}") from None
+    if not isinstance(array, np.ndarray) or array.dtype.kind not in "fiub":
+        raise ValueError(f"{what} holds {getattr(array, 'dtype', type(array))} data, not "
+                         "numbers")
+    flat = array.astype(np.float32).ravel()
+    if not np.isfinite(flat).all():
+        raise ValueError(f"{what} has NaN or infinite components")
+    return flat
+
+
+def npy(values: np.ndarray, shape: list[int]) -> bytes:
+    """A .npy of ``values`` in ``shape`` (flat when empty): how large values are kept."""
+    buf = io.BytesIO()
+    flat = np.asarray(values, dtype=np.float32).ravel()
+    np.save(buf, flat.reshape(shape) if shape else flat)
+    return buf.getvalue()
