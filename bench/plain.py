@@ -10,7 +10,9 @@
 
 The one change from the tutorial: the integrator is the daemon's choice for the same scene
 (``prb`` or ``prbvolpath`` with the scene's max_depth) instead of the scene's ``path``, so both
-sides render the same way and the comparison measures the daemon, not the integrator.
+sides render the same way and the comparison measures the daemon, not the integrator; with
+``integrator=""`` the script renders with the scene's own, as it stands (bench/real_scenes.py
+sets it through the scene's ``$integrator`` default, as a user of the thesis's scenes would).
 
 Also a script (``python bench/plain.py --first-iteration ...``): a fresh process that imports
 Mitsuba, sets the variant, loads the scene and runs one iteration, printing when each part
@@ -33,11 +35,12 @@ class PlainSpec:
     start: dict[str, list[float]]            # key -> initial flat value
     iterations: int
     spp: int
-    integrator: str = "prb"
+    integrator: str = "prb"         # "": the scene's own (a user's script as it stands)
     max_depth: int = 8
     overrides: dict[str, str] = field(default_factory=dict)
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)  # default [0, 1]
-    rates: dict[str, float] = field(default_factory=dict)                 # default 0.03
+    rates: dict[str, float] = field(default_factory=dict)                 # default: rate
+    rate: float = 0.03
     seed: int = 0
     # further sensors' references (sensor index -> linear EXR): the loss is the mean over all
     more_references: dict[int, Path] = field(default_factory=dict)
@@ -78,12 +81,13 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
 
     began, cpu = time.perf_counter(), time.process_time()
     scene = mi.load_file(str(spec.xml), **spec.overrides)
-    integrator = mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+    integrator = (mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+                  if spec.integrator else scene.integrator())
     references = {s: mi.TensorXf(np.array(mi.Bitmap(str(path)), dtype=np.float32)[..., :3])
                   for s, path in {0: spec.reference, **spec.more_references}.items()}
     params = mi.traverse(scene)
     params.keep(list(spec.start))
-    opt = mi.ad.Adam(lr=0.03)
+    opt = mi.ad.Adam(lr=spec.rate)
     for key, start in spec.start.items():
         if dr.is_tensor_v(params[key]):  # a texture or grid: its shape, from a flat start
             opt[key] = type(params[key])(np.asarray(start, np.float32).reshape(params[key].shape))
