@@ -254,7 +254,7 @@ def run_daemon(client: mc.Client, prep: Prepared, method: str, spec: pb.JobSpec)
     job = common.run_job(client, spec)
     common.require_success(job, f"real_scenes {t.name} {method} seed {spec.seed}")
     values = [{v.key: list(v.value) for v in r.parameters} for r in job.history]
-    errors = [{k: relative_error(k, v[k], t.truth[k]) for k in t.truth} for v in values]
+    errors = [{k: relative_error(k, v[k], t.truth[k]) for k in t.truth if k in v} for v in values]
     return Run(t.name, method, spec.seed, common.per_iteration(job.seconds), job.seconds,
                errors, len(job.history), list(job.job.notes),
                f"{job.job.integrator}: {job.job.integrator_reason}",

@@ -140,7 +140,7 @@ def job_settings(spec: pb.JobSpec, scene: api.SceneInput, read_blob: ReadBlob,
         cosine=spec.schedule != pb.SCHEDULE_CONSTANT, step_per_sensor=spec.sensor_mode == pb.SENSOR_MODE_STEP_PER_SENSOR,
         clamp=spec.clamp, resolution=spec.film_height, truth=truth,
         image_error_every=spec.image_error_every, image_error_spp=spec.image_error_spp or 64,
-        fit_exposure=spec.fit_exposure, max_samples=max_samples)
+        fit_exposure=spec.fit_exposure, max_samples=max_samples, choices=dict(spec.choices))
 
 
 def reference_names(spec: pb.JobSpec) -> dict[int, str]:
@@ -188,6 +188,16 @@ def progress_to_job(job: pb.Job, p: api.Progress) -> None:
     job.best_loss = p.best_loss if math.isfinite(p.best_loss) else 0.0
     job.elapsed_seconds = p.seconds
     counters_to_job(job, p.counters)
+    choices_to_job(job, p.choices)
+
+
+def choices_to_job(job: pb.Job, choices: list[api.ChoiceStatus]) -> None:
+    """The engine's choices that concern the job, as it last reported them."""
+    del job.choices[:]
+    job.choices.extend(pb.Choice(name=c.name, on=c.on, why=c.why,
+                                 seconds_per_iteration=c.seconds_per_iteration,
+                                 setup_seconds=c.setup_seconds, switchable=c.switchable)
+                       for c in choices)
 
 
 def counters_to_job(job: pb.Job, c: api.Counters) -> None:

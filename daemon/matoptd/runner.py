@@ -471,6 +471,7 @@ class Runner:
             job.integrator, job.integrator_reason = started.integrator, started.integrator_reason
             job.worker = action.worker
             job.sensors_rendered[:] = started.sensors
+            convert.choices_to_job(job, started.choices)
             job.notes.extend(n for n in started.notes if n not in job.notes)
             if job.resumed_from == "pending":
                 job.resumed_from = (f"checkpoint at iteration {started.iteration}"

@@ -412,6 +412,7 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
             raise InvalidArgument(f"smoothness applies to textures and grids; '{p.key}' is of "
                                   f"kind {enums.short_name(pb.ParameterKind, info.kind).lower()}")
         p.learning_rate, p.min, p.max = lr, lo, hi
+    _check_choices(spec.choices)
     for t in out.ground_truth:
         if t.key not in params:
             raise InvalidArgument(f"ground truth for unknown parameter key '{t.key}'")
@@ -422,6 +423,20 @@ def _check_spec(spec: pb.JobSpec, scene: pb.Scene, params: dict[str, pb.Paramete
             raise InvalidArgument(f"ground truth of '{t.key}' has {len(t.value)} "
                                   f"component(s), expected {size}")
     return out
+
+
+def _check_choices(choices) -> None:
+    """JobSpec.choices: names the engine has (or "all"), values it accepts."""
+    names = [*api.CHOICES, api.ALL_CHOICES]
+    for name, value in choices.items():
+        if name not in names:
+            close = difflib.get_close_matches(name, names, n=1)
+            raise InvalidArgument(f"unknown choice '{name}'"
+                                  + (f" (did you mean '{close[0]}'?)" if close else "")
+                                  + f"; the choices are {', '.join(names)}")
+        if value not in api.CHOICE_VALUES:
+            raise InvalidArgument(f"choice '{name}' cannot be '{value}': give "
+                                  f"{' or '.join(api.CHOICE_VALUES)}")
 
 
 def _check_blob_sizes(spec: pb.JobSpec, settings: api.JobSettings,

@@ -1,0 +1,111 @@
+"""The engine's named choices: which are on for a job's settings, when eta is released from its
+hold (pure logic), and, through a real daemon, what a job's status says of its choices, turning
+one off, and bad names or values refused."""
+
+from __future__ import annotations
+
+import grpc
+import numpy as np
+import pytest
+
+from matopt_api.v1 import matopt_pb2 as pb
+from matoptd import engine_api as api
+from matoptd.engine.choices import REGISTRY
+from matoptd.engine.choices.eta_hold import SETTLED, WINDOW, EtaHold
+
+import thesis_scenes as ts
+from conftest import wait_state
+from scenes import create_scene
+
+
+def _settings(**choices: str) -> api.JobSettings:
+    return api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+                           [api.ParameterSetting("obj.eta", 0.01, 1.001, 4.0)],
+                           choices=choices)
+
+
+def test_every_choice_is_on_unless_turned_off_by_name_or_all():
+    assert all(_settings().choice_on(c.name) for c in REGISTRY)
+    off = _settings(eta_differences="off")
+    assert not off.choice_on("eta_differences") and off.choice_on("log_space")
+    plain = _settings(all="off", depth="on")
+    assert plain.choice_on("depth") and not plain.choice_on("log_space")
+    # Choices a setting asks for are not switched by name: they follow that setting.
+    asked = [c.name for c in REGISTRY if not c.switchable]
+    assert sorted(asked) == ["exposure_gains", "smoothness"]
+    assert all(c(_settings(all="off")).on for c in REGISTRY if not c.switchable)
+
+
+def _hold(path: list[float], rate: float = 0.1) -> EtaHold:
+    hold = EtaHold(_settings())
+    hold.others = ["obj.albedo"]
+    hold.path = [{"obj.albedo": np.array([x])} for x in path]
+    hold.rates = [{"obj.albedo": rate}] * (len(path) - 1)
+    return hold
+
+
+def test_eta_is_held_while_another_parameter_still_descends_steadily():
+    # A steady descent moves by about its rate each step: not settled.
+    assert not _hold([0.5 - 0.09 * n for n in range(WINDOW + 1)]).settled()
+    # Jitter about the optimum nets a small share of the steps it was allowed: settled.
+    jitter = [0.2 + 0.05 * (-1) ** n for n in range(WINDOW + 1)]
+    assert _hold(jitter).settled()
+    # Exactly at the threshold's edge: a net move of SETTLED of the allowed steps still holds.
+    edge = [0.0] * WINDOW + [1.01 * SETTLED * 0.1 * WINDOW]
+    assert not _hold(edge).settled()
+    # Too short a history never releases.
+    assert not _hold(jitter[:WINDOW]).settled()
+
+
+def _job(stubs, case: ts.Case, iterations: int, **choices: str) -> pb.Job:
+    scene = create_scene(stubs, case.files, case.main)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64)).images[0]
+    spec = pb.JobSpec(scene=scene.name, iterations=iterations, min_error=0,
+                      references=[pb.Reference(blob=ref.exr_blob)],
+                      parameters=[pb.ParameterSpec(key=k, initial_value=list(np.ravel(v)))
+                                  for k, v in case.start.items()])
+    spec.choices.update(choices)
+    name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+    job = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert job.state == pb.JOB_STATE_SUCCEEDED, job.error
+    return job
+
+
+def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
+    """Table 2's kind at 16 px: its roughness is stepped in log space and shown at no less
+    than the floor, its eta waits for the rest and is differenced near the specular limit."""
+    case = ts.table2(res=16)
+    job = _job(stubs, case, 8)
+    choices = {c.name: c for c in job.choices}
+    assert {"log_space", "roughness_floor", "eta_differences", "eta_hold"} <= set(choices)
+    assert all(c.on and c.switchable and c.why for c in choices.values())
+    assert "relative" in choices["log_space"].why
+    # Measured: its hooks' time per iteration (the differences render, the floor only maps).
+    assert choices["eta_differences"].seconds_per_iteration >= 0
+    assert choices["roughness_floor"].seconds_per_iteration < 0.01
+    assert any("its rate 0.2 is a relative step" in n for n in job.notes)
+
+    off = _job(stubs, case, 8, eta_differences="off", log_space="off")
+    choices = {c.name: c for c in off.choices}
+    assert not choices["eta_differences"].on and not choices["log_space"].on
+    assert choices["roughness_floor"].on
+    assert choices["eta_differences"].seconds_per_iteration == 0
+    assert not any("central differences" in n or "relative step" in n for n in off.notes)
+
+
+@pytest.mark.parametrize("choices, message", [
+    ({"eta_diferences": "off"}, "unknown choice 'eta_diferences' (did you mean "
+                                "'eta_differences'?)"),
+    ({"depth": "maybe"}, "choice 'depth' cannot be 'maybe': give on or off"),
+])
+def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
+    case = ts.table2(res=8)
+    scene = create_scene(stubs, case.files, case.main)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1)).images[0]
+    spec = pb.JobSpec(scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)],
+                      parameters=[pb.ParameterSpec(key=f"{ts.BSDF}.eta")])
+    spec.choices.update(choices)
+    with pytest.raises(grpc.RpcError) as err:
+        stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert message in err.value.details()
