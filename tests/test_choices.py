@@ -73,11 +73,13 @@ def _job(stubs, case: ts.Case, iterations: int, **choices: str) -> pb.Job:
 
 def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     """Table 2's kind at 16 px: its roughness is stepped in log space and shown at no less
-    than the floor, its eta waits for the rest and is differenced near the specular limit."""
+    than the floor, its eta is differenced near the specular limit (and not held: there is no
+    medium it could stand in for)."""
     case = ts.table2(res=16)
     job = _job(stubs, case, 8)
     choices = {c.name: c for c in job.choices}
-    assert {"log_space", "roughness_floor", "eta_differences", "eta_hold"} <= set(choices)
+    assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
+    assert "eta_hold" not in choices
     assert all(c.on and c.switchable and c.why for c in choices.values())
     assert "relative" in choices["log_space"].why
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
@@ -109,3 +111,22 @@ def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
         stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert message in err.value.details()
+
+
+def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
+    """Table 4's kind (rough glass around a medium started black): eta stays at its start
+    while albedo and sigma_t still climb, and says so; turned off, it moves at once."""
+    case = ts.table4(res=16)
+    eta = f"{ts.BSDF}.eta"
+
+    def etas(job: pb.Job) -> list[float]:
+        history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+        return [next(v.value[0] for v in r.parameters if v.key == eta) for r in history]
+
+    held = _job(stubs, case, 24)
+    choice = next(c for c in held.choices if c.name == "eta_hold")
+    assert choice.on and "albedo" in choice.why and "sigma_t" in choice.why
+    # No release before WINDOW steps of the others are known.
+    assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
+    free = etas(_job(stubs, case, 12, eta_hold="off"))
+    assert abs(free[-1] - case.start[eta][0]) > 0.02
