@@ -145,6 +145,7 @@ class Run:
     seconds: list[float]
     errors: list[dict[str, float]]     # per iteration, per key
     iterations: int
+    values: dict[str, list[float]]     # at the end
     notes: list[str] = field(default_factory=list)
     integrator: str = ""
     choices: list = field(default_factory=list)  # pb.Choice of a daemon job
@@ -222,7 +223,8 @@ def run_plain(prep: Prepared, p: Plan, seed: int, variant: str, iterations: int)
     its = plain.run(spec, variant)
     errors = [{k: relative_error(k, it.values[k], t.truth[k]) for k in t.truth} for it in its]
     seconds = [it.seconds for it in its]
-    return Run(t.name, "plain", seed, common.per_iteration(seconds), seconds, errors, len(its))
+    return Run(t.name, "plain", seed, common.per_iteration(seconds), seconds, errors, len(its),
+               its[-1].values)
 
 
 def daemon_spec(prep: Prepared, seed: int, iterations: int, choices: dict[str, str] | None = None,
@@ -256,7 +258,7 @@ def run_daemon(client: mc.Client, prep: Prepared, method: str, spec: pb.JobSpec)
     values = [{v.key: list(v.value) for v in r.parameters} for r in job.history]
     errors = [{k: relative_error(k, v[k], t.truth[k]) for k in t.truth if k in v} for v in values]
     return Run(t.name, method, spec.seed, common.per_iteration(job.seconds), job.seconds,
-               errors, len(job.history), list(job.job.notes),
+               errors, len(job.history), values[-1], list(job.job.notes),
                f"{job.job.integrator}: {job.job.integrator_reason}",
                list(getattr(job.job, "choices", [])))
 
@@ -428,7 +430,9 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                          "seconds_per_iteration": r.per_iteration, "iterations": r.iterations,
                          "to_2pct": r.staying(table.targets, 0.02),
                          "to_1pct": r.staying(table.targets, 0.01),
-                         **{f"final:{_short(k)}": v for k, v in r.final.items()}})
+                         **{f"final:{_short(k)}": v for k, v in r.final.items()},
+                         **{f"value:{_short(k)}": " ".join(f"{x:.4g}" for x in v)
+                            for k, v in r.values.items()}})
     if rows:
         result.files.append(common.write_csv(settings.out / "real_scenes.csv", rows))
     return result

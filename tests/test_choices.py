@@ -11,7 +11,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import engine_api as api
 from matoptd.engine.choices import REGISTRY
-from matoptd.engine.choices.eta_hold import SETTLED, WINDOW, EtaHold
+from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 
 import thesis_scenes as ts
 from conftest import wait_state
@@ -36,25 +36,29 @@ def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert all(c(_settings(all="off")).on for c in REGISTRY if not c.switchable)
 
 
-def _hold(path: list[float], rate: float = 0.1) -> EtaHold:
-    hold = EtaHold(_settings())
-    hold.others = ["obj.albedo"]
-    hold.path = [{"obj.albedo": np.array([x])} for x in path]
-    hold.rates = [{"obj.albedo": rate}] * (len(path) - 1)
-    return hold
+def _path(values: list[float], rate: float = 0.1) -> Path:
+    path = Path()
+    for v in values:
+        path.add(np.array([v]), rate)
+    return path
 
 
-def test_eta_is_held_while_another_parameter_still_descends_steadily():
+def test_a_variable_has_settled_once_it_nets_a_small_share_of_its_steps():
     # A steady descent moves by about its rate each step: not settled.
-    assert not _hold([0.5 - 0.09 * n for n in range(WINDOW + 1)]).settled()
+    assert not _path([0.5 - 0.09 * n for n in range(WINDOW + 1)]).settled()
     # Jitter about the optimum nets a small share of the steps it was allowed: settled.
     jitter = [0.2 + 0.05 * (-1) ** n for n in range(WINDOW + 1)]
-    assert _hold(jitter).settled()
-    # Exactly at the threshold's edge: a net move of SETTLED of the allowed steps still holds.
-    edge = [0.0] * WINDOW + [1.01 * SETTLED * 0.1 * WINDOW]
-    assert not _hold(edge).settled()
-    # Too short a history never releases.
-    assert not _hold(jitter[:WINDOW]).settled()
+    assert _path(jitter).settled()
+    # Just past the threshold: a net move of a little more than SETTLED of the allowed steps.
+    assert not _path([0.0] * WINDOW + [1.01 * SETTLED * 0.1 * WINDOW]).settled()
+    assert _path([0.0] * WINDOW + [0.99 * SETTLED * 0.1 * WINDOW]).settled()
+    # Too short a history is never settled; steps not taken (rate 0) allow nothing.
+    assert not _path(jitter[:WINDOW]).settled()
+    frozen = _path([0.3] * (WINDOW + 1), rate=0.0)
+    assert frozen.settled()
+    # A checkpoint's arrays give the same path back.
+    again = Path.restored(_path(jitter).state("p"), "p")
+    assert again.settled() and len(again.values) == WINDOW + 1
 
 
 def _job(stubs, case: ts.Case, iterations: int, **choices: str) -> pb.Job:

@@ -14,7 +14,10 @@ an optimized roughness that sharpens switches it on; a smooth dielectric always)
 The difference of the losses themselves would also follow the render noise's variance, which
 changes with eta (on a rough principled object it ended at eta 1.45 for a truth of 1.49); I is
 independent of D's samples, as Mitsuba's adjoint pass is of its primal pass. Its cost: two
-primal renders at a quarter of the job's spp per eta and sensor, only while it is on.
+primal renders at a quarter of the job's spp per eta and sensor, only while it is on. Once eta
+has settled (settling.py: over the last WINDOW iterations it netted less than SETTLED of the
+steps its rate allowed), the difference is taken, and eta stepped, only every EVERY-th
+iteration; should eta move steadily again, at every one.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import numpy as np
 
 from .. import parameters
 from .base import Choice
+from .settling import Path
 
 # The sides take a quarter of the job's spp: both share their samples, so most noise cancels.
 # On the Table 2 and 3 kinds eta ended as close as at full spp (0.0-0.5%) and an iteration took
@@ -32,6 +36,7 @@ from .base import Choice
 SPP_DIVISOR = 4
 STEP = 0.01   # h: 1% of the range near 1.5
 DRAW = 0x9E3779B9  # samples of their own, shared by both sides
+EVERY = 4     # once eta has settled, its difference every EVERY-th iteration
 
 
 class EtaDifferences(Choice):
@@ -47,15 +52,23 @@ class EtaDifferences(Choice):
                            for w in parameters.microfacet_widths(k, widths.keys())}
                        for k in loop.parameters if parameters.dielectric_eta(k)}
         del widths
+        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.widths)}
+        saved = state.get("sparse") if state else None
+        self.sparse = int(saved[0]) if saved is not None else 0  # iterations not differenced
         self.applies = bool(self.widths)
         self.integrator = loop.integrator_name
-        self.why = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
-                              for k in self.widths)
-                    + f": {self.integrator} samples the refracted direction detached from eta, "
-                    "so near the specular limit its own gradient of eta misses where the "
-                    "refracted rays go" if self.on else
-                    f"{', '.join(self.widths)}: the gradient from back-propagation alone, at any "
-                    "width")
+        self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
+                               for k in self.widths)
+                     + f" (every {EVERY}th iteration once it settles): {self.integrator} samples "
+                     "the refracted direction detached from eta, so near the specular limit its "
+                     "own gradient of eta misses where the refracted rays go" if self.on else
+                     f"{', '.join(self.widths)}: the gradient from back-propagation alone, at "
+                     "any width")
+        self._say()
+
+    def _say(self) -> None:
+        self.why = self.said + (f"; {self.sparse} iterations without it so far" if self.sparse
+                                else "")
 
     def _when(self, key: str) -> str:
         w = self.widths[key]
@@ -66,8 +79,18 @@ class EtaDifferences(Choice):
         theta = loop.current
         spp = max(1, loop.spp // SPP_DIVISOR)
         for key, widths in self.widths.items():
+            path = self.paths[key]
             if key in loop.frozen or not parameters.near_specular(widths, theta):
-                continue  # the AD gradient stands
+                path.add(loop.variable(key), 0.0 if key in loop.frozen else loop.rate(key))
+                continue  # held, or the AD gradient stands
+            if path.settled() and i % EVERY:
+                path.add(loop.variable(key), 0.0)
+                dr.set_grad(loop.opt[key], 0.0)  # no step without its difference
+                loop.frozen.add(key)
+                self.sparse += 1
+                self._say()
+                continue
+            path.add(loop.variable(key), loop.rate(key))
             p = loop.parameters[key]
             v = float(theta[key][0])
             lo, hi = max(v - STEP, p.lo), min(v + STEP, p.hi)
@@ -89,6 +112,12 @@ class EtaDifferences(Choice):
                     down = loop.image_loss([x - y for x, y in zip(images, d)], ref)
                     slope += float((up - down).array[0]) / (2 * STEP)
             dr.set_grad(loop.opt[key], mi.Float(slope / len(sensors)))
+
+    def state(self):
+        out = {"sparse": np.array([self.sparse], np.int64)}
+        for n, path in enumerate(self.paths.values()):
+            out.update(path.state(f"path{n}"))
+        return out
 
     def notes(self) -> list[str]:
         return [f"{k}: its gradient by central differences of the loss {self._when(k)} (eta +- "

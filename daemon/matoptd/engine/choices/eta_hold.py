@@ -6,10 +6,9 @@ Table 4 scene (a rough dielectric around a homogeneous medium, started at albedo
 standing in for the light a black medium did not scatter, and came back only slowly (final eta
 5-9% off over three seeds). Eta is therefore held (its gradient zeroed: Adam, with
 ``mask_updates``, then leaves it and its moments alone) while a selected medium property or
-the microfacet width beside eta still moves steadily: over the last WINDOW iterations it
-netted SETTLED or more of the full steps its rate allowed, in the space it is stepped in (a
-steady descent moves by about its rate each step; a parameter that jitters about its optimum
-nets a small fraction of that). It is never held past HOLD_SHARE of the job.
+the microfacet width beside eta still moves steadily (settling.py: over the last WINDOW
+iterations it netted SETTLED or more of the steps its rate allowed). It is never held past
+HOLD_SHARE of the job.
 
 Only with a medium selected: without one, holding eta lets the others take up its error
 instead. On the Table 3 kind (glass over a texture, eta from 1.64) eta held 15 iterations
@@ -25,9 +24,8 @@ import numpy as np
 from ...engine_api import SMALL
 from .. import parameters
 from .base import Choice
+from .settling import SETTLED, WINDOW, Path
 
-WINDOW = 10
-SETTLED = 0.5
 HOLD_SHARE = 0.5
 
 
@@ -44,8 +42,7 @@ class EtaHold(Choice):
         self.applies = bool(self.etas and self.others)
         saved = state.get("released") if state else None
         self.released = int(saved[0]) if saved is not None else -1  # the iteration; -1: held
-        self.path: list[dict[str, np.ndarray]] = []  # the others' variables, latest last
-        self.rates: list[dict[str, float]] = []     # their rates at each of those steps
+        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.others)}
         self.last = max(1, round(HOLD_SHARE * loop.settings.iterations))
         self.why = (f"{', '.join(self.etas)} held at its start until "
                     f"{', '.join(self.others)} settle (each nets less than {SETTLED:g} of its "
@@ -56,22 +53,12 @@ class EtaHold(Choice):
         if self.released >= 0:
             self.why += f"; released at iteration {self.released}"
 
-    def settled(self) -> bool:
-        if len(self.path) <= WINDOW:
-            return False
-        first, last = self.path[-WINDOW - 1], self.path[-1]
-        for key in self.others:
-            allowed = sum(r[key] for r in self.rates[-WINDOW:])
-            if np.max(np.abs(last[key] - first[key])) > SETTLED * allowed:
-                return False
-        return True
-
     def on_gradient(self, loop, i: int, sensors) -> None:
         if self.released >= 0:
             return
-        self.path = (self.path + [{k: loop.variable(k) for k in self.others}])[-WINDOW - 1:]
-        self.rates = (self.rates + [{k: loop.rate(k) for k in self.others}])[-WINDOW:]
-        if self.settled() or i >= self.last:
+        for key, path in self.paths.items():
+            path.add(loop.variable(key), loop.rate(key))
+        if all(p.settled() for p in self.paths.values()) or i >= self.last:
             self.released = i
             self.why += (f"; released at iteration {i} ("
                          + ("the others settled)" if i < self.last else "the hold's limit)"))
@@ -81,4 +68,7 @@ class EtaHold(Choice):
             loop.frozen.add(key)
 
     def state(self):
-        return {"released": np.array([self.released], np.int64)}
+        out = {"released": np.array([self.released], np.int64)}
+        for n, path in enumerate(self.paths.values()):
+            out.update(path.state(f"path{n}"))
+        return out
