@@ -4,6 +4,8 @@ one off, and bad names or values refused."""
 
 from __future__ import annotations
 
+import re
+
 import grpc
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 
 import thesis_scenes as ts
 from conftest import wait_state
-from scenes import create_scene
+from scenes import PRINCIPLED, create_scene
 
 
 def _settings(**choices: str) -> api.JobSettings:
@@ -134,3 +136,47 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))
     assert abs(free[-1] - case.start[eta][0]) > 0.02
+
+
+UNBOUNDED = PRINCIPLED.replace(
+    '<integrator type="path"><integer name="max_depth" value="6"/></integrator>',
+    '<default name="max_depth" value="-1"/>\n'
+    '    <integrator type="path"><integer name="max_depth" value="$max_depth"/></integrator>')
+
+
+def test_an_unbounded_depth_is_cut_where_the_image_stops_changing_unless_the_user_sets_it(
+        stubs):
+    """A translucent principled ball (spec_trans 0.7: light bounces inside it) in a scene of
+    unbounded depth: the job measures the depth its images need, says so, and recovers the
+    colour as the unbounded reference shows it; a depth the user sets stands, and one far too
+    shallow (2) leaves the colour off, which is what a cut too shallow would do."""
+    key, truth = "shape_2.bsdf.base_color.value", np.array([0.41, 0.82, 0.99])
+    scene = create_scene(stubs, {"s.xml": UNBOUNDED.encode()}, "s.xml", resx=24, resy=24)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1024,
+                                                         seed=3)).images[0]
+
+    def run(scene: pb.Scene) -> tuple[pb.Job, float]:
+        spec = pb.JobSpec(scene=scene.name, iterations=40, spp=16, min_error=0,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=key, initial_value=[0.3] * 3)])
+        name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+        job = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert job.state == pb.JOB_STATE_SUCCEEDED, job.error
+        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_LAST))
+        value = np.array(next(v.value for v in last.parameters if v.key == key))
+        return job, float(np.sqrt(np.mean((value - truth) ** 2) / np.mean(truth ** 2)))
+
+    job, error = run(scene)
+    cut = re.search(r"max_depth (\d+) \(the scene's unbounded cut: the bounces past \d+ change "
+                    r"the image by", job.integrator_reason)
+    assert cut and 2 < int(cut.group(1)) < 64, job.integrator_reason
+    depth = next(c for c in job.choices if c.name == "depth")
+    assert depth.on and depth.setup_seconds > 0 and f"max_depth {cut.group(1)}" in depth.why
+    assert error < 0.03, error
+
+    shallow = create_scene(stubs, {"s.xml": UNBOUNDED.encode()}, "s.xml", resx=24, resy=24,
+                           max_depth=2)
+    job, shallow_error = run(shallow)
+    assert "max_depth 2 (the scene's)" in job.integrator_reason
+    assert "depth" not in {c.name for c in job.choices}
+    assert shallow_error > 2 * max(error, 0.02), (shallow_error, error)

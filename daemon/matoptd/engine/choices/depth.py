@@ -73,7 +73,9 @@ class Depth(Choice):
             chosen.depth_origin = (f"the scene's {shown} cut: the bounces past {cut} change the "
                                    f"image by {change:.3g} (mean square), less than the noise "
                                    f"of the mean of the job's renders ({noise:.3g})")
-            self.why = f"max_depth {cut} instead of the scene's {shown}: " + chosen.depth_origin
+            self.why = (f"max_depth {cut} instead of the scene's {shown}: the bounces past {cut} "
+                        f"change the image by {change:.3g} (mean square), less than the noise "
+                        f"of the mean of the job's renders ({noise:.3g})")
         else:
             self.why = (f"the scene's max_depth {shown} kept: cut anywhere below, the image "
                         f"changes by more than the noise of the mean of the job's renders "
