@@ -5,6 +5,7 @@ one off, and bad names or values refused."""
 from __future__ import annotations
 
 import re
+import types
 
 import grpc
 import numpy as np
@@ -13,11 +14,13 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import engine_api as api
 from matoptd.engine.choices import REGISTRY
+from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 
 import thesis_scenes as ts
-from conftest import wait_state
+from conftest import Daemon, Stubs, wait_iteration, wait_state
 from scenes import PRINCIPLED, create_scene
+from stiff import glass
 
 
 def _settings(**choices: str) -> api.JobSettings:
@@ -180,3 +183,66 @@ def test_an_unbounded_depth_is_cut_where_the_image_stops_changing_unless_the_use
     assert "max_depth 2 (the scene's)" in job.integrator_reason
     assert "depth" not in {c.name for c in job.choices}
     assert shallow_error > 2 * max(error, 0.02), (shallow_error, error)
+
+
+def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
+    """The choices' state travels in the checkpoint. A near-specular glass ball whose eta is
+    differenced at every iteration while it moves and every EVERY-th once it has settled
+    (its recent path decides), paused after that and resumed on single-thread workers
+    (deterministic sums), has the losses and etas of one that was not paused; restarted
+    without its path, eta would be differenced, and stepped, at every iteration again."""
+    daemon = Daemon(tmp_path / "data", None, "--workers", "2").start()
+    try:
+        own = Stubs(daemon.address)
+        scene = create_scene(own, {"g.xml": glass(1.5, alpha=0.01).encode()}, "g.xml")
+        ref = own.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128)).images[0]
+        eta = "ball.bsdf.eta"
+        spec = pb.JobSpec(scene=scene.name, iterations=50, min_error=0,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=eta, initial_value=[1.35])])
+        whole = own.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+        whole = wait_state(own, whole.name, (pb.JOB_STATE_SUCCEEDED,), timeout=600)
+        paused = own.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+        wait_iteration(own, paused.name, 40)
+        own.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
+        at = wait_state(own, paused.name, (pb.JOB_STATE_PAUSED,)).iteration
+        assert 40 <= at < 48
+        own.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
+        done = wait_state(own, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=600)
+        assert done.resumed_from == f"checkpoint at iteration {at}", done.resumed_from
+        runs = [own.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=j.name)).iterations
+                for j in (whole, paused)]
+        for field in (lambda r: r.loss, lambda r: r.parameters[0].value[0]):
+            np.testing.assert_allclose([field(r) for r in runs[1]],
+                                       [field(r) for r in runs[0]], rtol=2e-5)
+        # It did go sparse before the pause (else the comparison proves nothing).
+        skipped = [re.search(r"(\d+) iterations without it", next(
+            c.why for c in j.choices if c.name == "eta_differences")) for j in (whole, done)]
+        assert skipped[0] and int(skipped[0].group(1)) >= 3
+        assert skipped[1] and skipped[1].group(1) == skipped[0].group(1)
+        own.close()
+    finally:
+        daemon.stop()
+
+
+def test_the_hold_restores_where_it_stood():
+    """EtaHold's state (when it was released, and the medium's recent path) sets up a hold
+    that decides as the saved one would."""
+    settings = api.JobSettings(
+        api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+        [api.ParameterSetting("obj.eta", 0.01, 1.001, 4.0),
+         api.ParameterSetting("m.albedo.value.value", 0.03, 0.0, 1.0)], iterations=100)
+    loop = types.SimpleNamespace(
+        parameters={p.key: p for p in settings.parameters}, settings=settings,
+        starts={"obj.eta": np.array([1.5]), "m.albedo.value.value": np.array([0.1] * 3)})
+    hold = EtaHold(settings)
+    hold.setup(loop, None)
+    assert hold.applies and hold.released == -1
+    for n in range(WINDOW):
+        hold.paths["m.albedo.value.value"].add(np.array([0.1 + 0.03 * n] * 3), 0.03)
+    hold.released = 42
+    again = EtaHold(settings)
+    again.setup(loop, hold.state())
+    assert again.released == 42 and "released at iteration 42" in again.why
+    path = again.paths["m.albedo.value.value"]
+    assert len(path.values) == WINDOW and path.rates == [0.03] * WINDOW

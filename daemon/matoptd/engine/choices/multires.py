@@ -84,3 +84,10 @@ class Multires(Choice):
 
     def state(self):
         return {"levels": np.array([self.level[k] for k in sorted(self.levels)], np.int32)}
+
+    def notes(self) -> list[str]:
+        return [f"{key}: optimized coarse to fine ("
+                + " -> ".join("x".join(map(str, sh[:-1])) for sh in shapes)
+                + f"; the full resolution from iteration {self.loop.settings.iterations // 2}): "
+                "the pattern's low frequencies settle before its detail"
+                for key, shapes in sorted(self.levels.items())]
