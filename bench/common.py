@@ -66,6 +66,11 @@ class Settings:
     quick: bool
     work: Path  # scratch space (daemon data dirs, downloads): not part of the results
     thesis_size: bool = False  # thesis_tables at the thesis's image size (a GPU's work)
+    thesis_repo: Path | None = None  # a checkout of the thesis's repository (real_scenes)
+    variant: str = ""          # the daemons' --variant ("": as they pick it)
+    film: tuple[int, int] | None = None  # real_scenes: film width and height
+    iterations: int = 0        # real_scenes: iterations per run (0: by device)
+    seeds: int = 0             # real_scenes: seeds (0: 3)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,11 +10,16 @@
 
 The one change from the tutorial: the integrator is the daemon's choice for the same scene
 (``prb`` or ``prbvolpath`` with the scene's max_depth) instead of the scene's ``path``, so both
-sides render the same way and the comparison measures the daemon, not the integrator.
+sides render the same way and the comparison measures the daemon, not the integrator; with
+``integrator=""`` the script renders with the scene's own, as it stands (bench/real_scenes.py
+sets it through the scene's ``$integrator`` default, as a user of the thesis's scenes would).
 
-Also a script (``python bench/plain.py --first-iteration ...``): a fresh process that imports
+Also a script: ``python bench/plain.py --first-iteration ...`` is a fresh process that imports
 Mitsuba, sets the variant, loads the scene and runs one iteration, printing when each part
-ended, for the warm-start case. It imports nothing but Mitsuba, as a user's script would.
+ended, for the warm-start case; it imports nothing but Mitsuba, as a user's script would.
+``python bench/plain.py --loop SPEC.json`` runs the loop for each of the spec's seeds and
+prints, per seed, a JSON line with theta_i of every iteration (tests/test_conformance.py
+compares a job of the daemon's ``plain`` preset with it, in a process of its own).
 """
 
 from __future__ import annotations
@@ -33,11 +38,12 @@ class PlainSpec:
     start: dict[str, list[float]]            # key -> initial flat value
     iterations: int
     spp: int
-    integrator: str = "prb"
+    integrator: str = "prb"         # "": the scene's own (a user's script as it stands)
     max_depth: int = 8
     overrides: dict[str, str] = field(default_factory=dict)
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)  # default [0, 1]
-    rates: dict[str, float] = field(default_factory=dict)                 # default 0.03
+    rates: dict[str, float] = field(default_factory=dict)                 # default: rate
+    rate: float = 0.03
     seed: int = 0
     # further sensors' references (sensor index -> linear EXR): the loss is the mean over all
     more_references: dict[int, Path] = field(default_factory=dict)
@@ -78,12 +84,13 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
 
     began, cpu = time.perf_counter(), time.process_time()
     scene = mi.load_file(str(spec.xml), **spec.overrides)
-    integrator = mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+    integrator = (mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+                  if spec.integrator else scene.integrator())
     references = {s: mi.TensorXf(np.array(mi.Bitmap(str(path)), dtype=np.float32)[..., :3])
                   for s, path in {0: spec.reference, **spec.more_references}.items()}
     params = mi.traverse(scene)
     params.keep(list(spec.start))
-    opt = mi.ad.Adam(lr=0.03)
+    opt = mi.ad.Adam(lr=spec.rate)
     for key, start in spec.start.items():
         if dr.is_tensor_v(params[key]):  # a texture or grid: its shape, from a flat start
             opt[key] = type(params[key])(np.asarray(start, np.float32).reshape(params[key].shape))
@@ -157,19 +164,38 @@ def first_iteration(variant: str, xml: Path, reference: Path, overrides: dict[st
     return t
 
 
+def loop(path: Path) -> None:
+    """The loop for each seed of a JSON spec (PlainSpec's fields, paths as strings, ``seeds``
+    and ``variant``); a JSON line per seed: {"seed": s, "values": [theta_0, theta_1, ...]}."""
+    spec = json.loads(path.read_text())
+    seeds, variant = spec.pop("seeds"), spec.pop("variant")
+    spec["xml"], spec["reference"] = Path(spec["xml"]), Path(spec["reference"])
+    spec["more_references"] = {int(k): Path(v) for k, v in
+                               spec.get("more_references", {}).items()}
+    spec["ranges"] = {k: tuple(v) for k, v in spec.get("ranges", {}).items()}
+    for seed in seeds:
+        its = run(PlainSpec(**{**spec, "seed": seed}), variant)
+        print(json.dumps({"seed": seed, "values": [it.values for it in its]}), flush=True)
+
+
 def main() -> None:
-    p = argparse.ArgumentParser(description="fresh-process first iteration (warm_start case)")
-    p.add_argument("--first-iteration", action="store_true", required=True)
-    p.add_argument("--variant", required=True)
-    p.add_argument("--xml", type=Path, required=True)
-    p.add_argument("--reference", type=Path, required=True)
+    p = argparse.ArgumentParser(description="fresh-process first iteration (warm_start case), "
+                                            "or the plain loop on a spec (--loop)")
+    p.add_argument("--loop", type=Path, metavar="SPEC.json")
+    p.add_argument("--first-iteration", action="store_true")
+    p.add_argument("--variant")
+    p.add_argument("--xml", type=Path)
+    p.add_argument("--reference", type=Path)
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
-    p.add_argument("--key", action="append", required=True)
-    p.add_argument("--start", type=float, nargs="+", required=True)
+    p.add_argument("--key", action="append")
+    p.add_argument("--start", type=float, nargs="+")
     p.add_argument("--spp", type=int, default=4)
     p.add_argument("--integrator", default="prb")
     p.add_argument("--max-depth", type=int, default=8)
     a = p.parse_args()
+    if a.loop:
+        loop(a.loop)
+        return
     overrides = dict(s.split("=", 1) for s in a.set)
     print(json.dumps(first_iteration(a.variant, a.xml, a.reference, overrides, a.key, a.start,
                                      a.spp, a.integrator, a.max_depth)))

@@ -39,7 +39,7 @@ from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
          "switching", "worker_restart", "two_workers", "geometry", "scheduling", "ray_cluster",
-         "thesis_tables"]
+         "thesis_tables", "real_scenes"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 # Cases no longer run, and why: the summary says so, so that a reader of an older report
 # knows where its figures went.
@@ -64,7 +64,10 @@ def run_case(name: str, settings: Settings) -> tuple[Result, object]:
         if not getattr(module, "NEEDS_DAEMON", True):  # a simulation: nothing to start
             result = module.run(settings, None)
         else:
-            with common.daemon(settings.work, name, **getattr(module, "DAEMON", {})) as daemon:
+            options = dict(getattr(module, "DAEMON", {}))
+            if settings.variant:
+                options["extra"] = (*options.get("extra", ()), "--variant", settings.variant)
+            with common.daemon(settings.work, name, **options) as daemon:
                 info = daemon.client.info
                 print(f"bench: daemon {info.variant} on {info.device}, {len(info.workers)} "
                       "worker(s)", file=sys.stderr, flush=True)
@@ -157,12 +160,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", nargs="+", choices=CASES, help="run only these cases")
     p.add_argument("--thesis-size", action="store_true",
                    help="thesis_tables at the thesis's image size (256 px; hours on a CPU)")
+    p.add_argument("--thesis-repo", type=Path, metavar="DIR",
+                   help="a checkout of github.com/sapo17/BachelorThesis (real_scenes)")
+    p.add_argument("--variant", default="",
+                   help="the daemons' and plain loops' Mitsuba variant, e.g. cuda_ad_rgb")
+    p.add_argument("--film", metavar="WxH", help="real_scenes: the film rendered (default "
+                   "683x512 on a GPU, 128x96 on the CPU)")
+    p.add_argument("--iterations", type=int, default=0,
+                   help="real_scenes: iterations per run (default 150 on a GPU, 100 on the CPU)")
+    p.add_argument("--seeds", type=int, default=0, help="real_scenes: seeds (default 3)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
         clear(args.out)
     work = Path(tempfile.mkdtemp(prefix="matopt-bench-"))
-    settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size)
+    film = tuple(int(x) for x in args.film.lower().split("x")) if args.film else None
+    settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
+                        args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
+                        film, args.iterations, args.seeds)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None

@@ -180,8 +180,10 @@ def camera(res: int, origin: str = "0, 0, 4", fov: float = 30) -> str:
     </sensor>"""
 
 
-def textured_quad(res: int = 32, bsdf: str = "diffuse", colour: str = "reflectance") -> str:
-    """A quad filling the view with an 8-bit PNG colour texture, lit by a white environment."""
+def textured_quad(res: int = 32, bsdf: str = "diffuse", colour: str = "reflectance",
+                  filename: str = "textures/albedo.png") -> str:
+    """A quad filling the view with a colour texture (an 8-bit PNG unless ``filename`` names
+    another file), lit by a white environment."""
     return f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="3"/></integrator>
     {camera(res, fov=32)}
@@ -189,7 +191,7 @@ def textured_quad(res: int = 32, bsdf: str = "diffuse", colour: str = "reflectan
     <shape type="rectangle" id="quad">
         <bsdf type="{bsdf}">
             <texture type="bitmap" name="{colour}">
-                <string name="filename" value="textures/albedo.png"/>
+                <string name="filename" value="{filename}"/>
                 <string name="filter_type" value="nearest"/>
             </texture>
         </bsdf>

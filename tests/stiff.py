@@ -174,9 +174,10 @@ CASES = [
          {f"{CLOUD}.albedo.value.value": [0.7] * 3, f"{CLOUD}.sigma_t.value.value": [1.0]},
          {f"{CLOUD}.albedo.value.value": [0.999] * 3, f"{CLOUD}.sigma_t.value.value": [5.0]}, 120,
          tolerance={f"{CLOUD}.albedo.value.value": 0.05, f"{CLOUD}.sigma_t.value.value": 0.5},
-         expect_integrator="max_depth 64 (the scene's unbounded depth capped",
-         why="albedo near 1 makes paths long (the scene asks for unbounded depth) and couples "
-             "albedo and sigma_t stiffly: brightness can come from either"),
+         expect_integrator="(the scene's unbounded cut: the bounces past",
+         why="albedo near 1 makes paths long (the scene asks for unbounded depth: the job "
+             "measures how deep they matter and cuts there) and couples albedo and sigma_t "
+             "stiffly: brightness can come from either"),
     Case("radiance 1e3 with reflectance 0.5", lit_wall(1e3, 0.5, res=32),
          {"lamp.emitter.radiance.value": [100.0] * 3, "wall.bsdf.reflectance.value": [0.2] * 3},
          {"lamp.emitter.radiance.value": [1e3] * 3, "wall.bsdf.reflectance.value": [0.5] * 3},

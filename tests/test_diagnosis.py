@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from matoptd.engine.diagnosis import (diagnose, drifts_from_truth, moving, steered, trade_offs,
-                                      undecided, unmoved)
+from matoptd.engine.diagnosis import (Kept, diagnose, drifts_from_truth, moving, steered,
+                                      trade_offs, undecided, unmoved)
 from matoptd.engine.parameters import ROUGHNESS_FLOOR
 
 N = 100
@@ -116,20 +116,16 @@ def test_a_parameter_without_gradient_is_reported_as_unmoved():
 
 
 def test_diagnose_passes_the_truth_errors_through():
-    class S:
-        lo, hi, log = 0.0, 1.0, False
-
     losses = _falling_then_level()
     spec = np.maximum(0.1 - 0.02 * np.arange(N), 0.0)
-    notes = diagnose({"obj.spec_trans": S()}, {"obj.spec_trans": np.array([0.0])}, losses, 0, 0,
+    notes = diagnose({"obj.spec_trans": Kept(0.0, 1.0)}, {"obj.spec_trans": np.array([0.0])}, losses, 0, 0,
                      {"obj.spec_trans": spec[:, None]},
                      {"obj.spec_trans": list(np.abs(spec - 1.0))})
     assert any("do not decide" in n for n in notes)
     assert any("ended on its lower bound 0" in n for n in notes)
 
 
-class _Roughness:
-    lo, hi, log = 0.01, 1.0, True
+_ROUGHNESS = Kept(0.01, 1.0, ROUGHNESS_FLOOR, log=True)
 
 
 def _drifting_roughness() -> tuple[list[float], dict[str, np.ndarray]]:
@@ -142,14 +138,14 @@ def _drifting_roughness() -> tuple[list[float], dict[str, np.ndarray]]:
 
 def _notes(gradients: list[np.ndarray] | None) -> list[str]:
     losses, paths = _drifting_roughness()
-    return diagnose({"blob.roughness": _Roughness()}, {"blob.roughness": np.array([0.066])},
+    return diagnose({"blob.roughness": _ROUGHNESS}, {"blob.roughness": np.array([0.066])},
                     losses, 0, 0, paths,
                     gradients=None if gradients is None else {"blob.roughness": gradients})
 
 
 def test_a_drift_on_gradients_without_a_consistent_sign_is_noise_not_convergence():
     losses, paths = _drifting_roughness()
-    assert list(moving({"blob.roughness": _Roughness()}, paths)) == ["blob.roughness"]
+    assert list(moving({"blob.roughness": _ROUGHNESS}, paths)) == ["blob.roughness"]
     # Zero-mean gradients of spread 1: their mean over 20 steps is within two standard errors.
     noise = [np.array([g]) for g in _noise(6, 1.0)[:99]]
     assert steered(noise[-20:])[0] is False
@@ -177,7 +173,7 @@ def test_a_drift_on_a_consistent_gradient_is_still_moving():
 def _at_floor(gradients: list[np.ndarray] | None) -> list[str]:
     """A principled roughness shown at the floor over its last 30 iterations."""
     path = np.concatenate([np.geomspace(0.5, ROUGHNESS_FLOOR, 70), np.full(30, ROUGHNESS_FLOOR)])
-    notes = diagnose({"blob.roughness": _Roughness()},
+    notes = diagnose({"blob.roughness": _ROUGHNESS},
                      {"blob.roughness": np.array([ROUGHNESS_FLOOR], np.float32)},
                      list(0.001 + _noise(4, 1e-4)), 0, 0, {"blob.roughness": path[:, None]},
                      gradients=None if gradients is None else {"blob.roughness": gradients})

@@ -139,6 +139,19 @@ def result_spp(spp: int, pixels: int, max_samples: int) -> int:
 
 
 @dataclass
+class ChoiceStatus:
+    """A choice that concerns the job: on (in force) or turned off by its settings, why in
+    words, and what it cost: its hooks' seconds per iteration so far, and once at the start."""
+
+    name: str
+    on: bool
+    why: str
+    seconds_per_iteration: float = 0.0
+    setup_seconds: float = 0.0
+    switchable: bool = True  # False: a setting asks for it (fit_exposure, a smoothness weight)
+
+
+@dataclass
 class Started:
     """A job's run, loaded. ``iteration`` is where it goes on (0, or the checkpoint's)."""
 
@@ -149,6 +162,7 @@ class Started:
     notes: list[str]
     shapes: dict[str, list[int]]  # of every optimized parameter
     kinds: dict[str, str]
+    choices: list[ChoiceStatus] = field(default_factory=list)
 
 
 @dataclass
@@ -183,6 +197,7 @@ class Progress:
     best_loss: float
     seconds: float           # optimizing time so far
     counters: Counters
+    choices: list[ChoiceStatus] = field(default_factory=list)
 
 
 @dataclass

@@ -14,7 +14,7 @@ import copy
 import enum
 from dataclasses import dataclass, field, replace
 
-from .engine_api import Counters, SensorInfo
+from .engine_api import ChoiceStatus, Counters, SensorInfo
 from .settings import JobSettings, SceneInput, Values
 
 
@@ -109,6 +109,7 @@ class JobRecord:
     sensors: list[int] = field(default_factory=list)
     shapes: dict[str, list[int]] = field(default_factory=dict)
     worker: str = ""
+    choices: list[ChoiceStatus] = field(default_factory=list)  # as the engine last reported
     resumed_from: str = ""
     checkpoint: int | None = None  # the iteration its latest checkpoint continues from
     ending: Ending | None = None
@@ -121,6 +122,7 @@ class JobRecord:
         they never change)."""
         return replace(self, counters=replace(self.counters), sensors=list(self.sensors),
                        shapes=dict(self.shapes), notes=list(self.notes),
+                       choices=list(self.choices),
                        ending=copy.deepcopy(self.ending))
 
 

@@ -29,6 +29,29 @@ LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_
 SCHEDULES = ("cosine", "constant")
 SENSOR_MODES = ("accumulate", "step_per_sensor")
 
+# The engine's named choices: the special cases of its one optimization loop, each of which a
+# job may turn off (JobSettings.choices, NAME -> "off"; "all" stands for every one). Those a
+# setting asks for (exposure gains by fit_exposure, smoothness by a weight) follow that
+# setting and are not named here. The engine's registry (engine/choices) holds exactly these.
+CHOICES = {
+    "filter_scaling": "a sensor's gaussian or tent filter scaled with a film resized by "
+                      "resolution, so renders blur as the references made at the scene's size",
+    "depth": "an unbounded or large max_depth cut to the least depth whose cut changes the "
+             "image less than the Monte Carlo noise the job averages (measured at its start)",
+    "black_start": "a colour that tints other lobes, started black, starts at 0.5 instead",
+    "log_space": "positive unbounded values and microfacet widths stepped as u = log v: a "
+                 "rate is a relative step",
+    "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
+                       "(0.0318) while Adam steps on below it",
+    "multires": "textures and grids optimized coarse to fine",
+    "eta_differences": "a dielectric's eta differentiated by central differences of the "
+                       "images while its surface is near-specular",
+    "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
+                "steadily",
+}
+CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
+ALL_CHOICES = "all"            # the key that stands for every name
+
 
 @dataclass(frozen=True)
 class SceneInput:
@@ -108,6 +131,12 @@ class JobSettings:
     # The most samples (film pixels x spp) one render call may take, the daemon's limit when
     # the job was admitted; 0: no limit. Results render at engine_api.result_spp within it.
     max_samples: int = 0
+    # A value per name of CHOICES ("off" turns it off; ALL_CHOICES: every one, a name given
+    # as well wins); a choice not named is on.
+    choices: dict[str, str] = field(default_factory=dict)
+
+    def choice_on(self, name: str) -> bool:
+        return self.choices.get(name, self.choices.get(ALL_CHOICES, "on")) != "off"
 
 
 def read_values(values: Values, read: Callable[[str], bytes], what: str) -> np.ndarray:

@@ -20,6 +20,9 @@ from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 STATES = enums.short_names(pb.JobState)
+# --preset plain: Mitsuba's plain Adam loop as the thesis ran it (one rate for every parameter
+# without its own, constant, none of the engine's choices).
+PLAIN_LEARNING_RATE = 0.03
 
 
 @click.group(cls=Group)
@@ -192,6 +195,12 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
               help="start where JOB's result left the parameters (a restart)")
 @click.option("--from-which", type=click.Choice(sorted(WHICH), case_sensitive=False),
               default="best", show_default=True, help="which result of --from")
+@click.option("--choice", "choices", multiple=True, metavar="NAME=on|off",
+              help="turn one of the engine's choices off (or on), e.g. eta_differences=off; "
+                   "'matopt job status' lists those in force, with why and cost (repeatable)")
+@click.option("--preset", type=click.Choice(["plain"]),
+              help=f"plain: Mitsuba's plain Adam loop (no engine choices, constant schedule, "
+                   f"rate {PLAIN_LEARNING_RATE} for parameters without their own)")
 @click.option("--wait", is_flag=True, help="follow the job with a progress bar until it ends")
 @json_option
 def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits, smooth,
@@ -199,7 +208,7 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
           iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
           image_error_every: int | None, from_job: str | None, from_which: str,
-          wait: bool, as_json: bool) -> None:
+          choices, preset: str | None, wait: bool, as_json: bool) -> None:
     """Start a job on SCENE; prints the job's name.
 
     The --param keys of SCENE are optimized until its renders match the --ref images. Options
@@ -223,6 +232,19 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
     client = connected()
     checked_settings(client, settings)
     spec = workflow.build_spec(scene, parameters, settings, ground_truth=truth)
+    for item in choices:
+        name, _, value = item.partition("=")
+        if not (name and value):
+            raise click.BadParameter(f"'{item}' is not NAME=on or NAME=off",
+                                     param_hint="--choice")
+        spec.choices[name.strip()] = value.strip().lower()
+    if preset == "plain":
+        if "all" not in spec.choices:
+            spec.choices["all"] = "off"
+        if schedule is None:
+            spec.schedule = pb.SCHEDULE_CONSTANT
+        if not spec.HasField("learning_rate"):
+            spec.learning_rate = PLAIN_LEARNING_RATE
     upload_values(client, scene, spec.parameters, spec.ground_truth)
     created = workflow.start_job(client, spec, references,
                                  (from_job, WHICH[from_which.lower()]) if from_job else None,
@@ -299,6 +321,10 @@ def status(name: str, as_json: bool) -> None:
         "fit exposure": "yes (an RGB gain per reference)" if spec.fit_exposure else None,
         "settings": workflow.applied(spec),
         "integrator": j.integrator + (f" ({j.integrator_reason})" if j.integrator_reason else ""),
+        "choices": "\n  ".join(
+            f"{c.name}: {'on' if c.on else 'off'}, {c.seconds_per_iteration * 1000:.3g} ms per "
+            f"iteration" + (f" (+{c.setup_seconds:.2g} s at start)" if c.setup_seconds >= 0.01
+                            else "") + f": {c.why}" for c in j.choices) or None,
         "sensors rendered": workflow.sensor_indices(j.sensors_rendered),
         "skipped steps": j.skipped_steps,
         "clamped components": j.clamped_components,

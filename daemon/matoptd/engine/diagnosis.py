@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..range_notes import bound_notes
-from .parameters import log_bounds, shown_floor
+
+
+@dataclass(frozen=True)
+class Kept:
+    """What the diagnosis reads of a parameter, from the choices in force: the range its value
+    is kept in, the floor it is shown at (0: none), whether it is stepped as log v."""
+
+    lo: float
+    hi: float
+    floor: float = 0.0
+    log: bool = False
 
 
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
@@ -14,7 +26,7 @@ DECIDER = ("more views (another sensor that sees it), larger images or more samp
            "fixed value (leave it out of the selection)")
 
 
-def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
+def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: list[float],
              nonfinite_steps: int, skipped_steps: int,
              trajectories: dict[str, np.ndarray] | None = None,
              truth_errors: dict[str, list[float]] | None = None,
@@ -30,14 +42,11 @@ def diagnose(settings: dict, values: dict[str, np.ndarray], losses: list[float],
         if v is None:
             continue
         # v is float32: 0.0318 reads back a little off, hence the tolerance of the bounds.
-        floor = shown_floor(key, s.lo)
-        if floor and np.all(v <= floor + 1e-6):
+        if s.floor and np.all(v <= s.floor + 1e-6):
             n = _tail(len((trajectories or {}).get(key, ())))
-            notes.append(floor_note(key, floor, (gradients or {}).get(key, [])[-n:]))
+            notes.append(floor_note(key, s.floor, (gradients or {}).get(key, [])[-n:]))
             continue
-        # A width optimized in log space stops at its floor, not at 0.
-        lo, hi = log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
-        notes += bound_notes(key, v, lo, hi)
+        notes += bound_notes(key, v, s.lo, s.hi)
     trajectories = trajectories or {}
     for key, (a, b) in moving(settings, trajectories).items():
         n = _tail(len(trajectories[key]))

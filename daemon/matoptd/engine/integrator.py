@@ -4,53 +4,68 @@ pays only for what it needs, and saying why."""
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 import mitsuba as mi
 
 from .scene import has_media
 
 DEFAULT_MAX_DEPTH = 8
-# An unbounded depth (-1) is capped for optimization. Russian roulette ends a path by its
-# throughput, and with albedo near 1 the throughput hardly falls: in an optically thick medium
-# a path can scatter thousands of times, and a symbolic loop runs until its longest lane ends
-# (in the adjoint pass as well). 64 bounces keep all but a sliver of the light in the cases of
-# bench/stability.py while bounding each iteration's cost.
-DEPTH_CAP = 64
+UNBOUNDED = -1
 _GEOMETRY = ("vertex_positions", "to_world")
 
 
-def max_depth(scene: mi.Scene) -> tuple[int, str]:
-    """The scene's own integrator depth, so the optimized image matches the scene's look."""
+@dataclass
+class Chosen:
+    """The integrator a job renders with, why, and its depth (the scene's own until the depth
+    choice cuts it) with where that came from."""
+
+    name: str
+    why: str
+    max_depth: int
+    depth_origin: str
+
+    @property
+    def has_depth(self) -> bool:
+        return self.name != "direct_projective"
+
+    def reason(self) -> str:
+        if not self.has_depth:
+            return f"{self.why}; the scene renders direct light only"
+        shown = "unbounded" if self.max_depth < 0 else self.max_depth
+        return f"{self.why}; max_depth {shown} ({self.depth_origin})"
+
+
+def scene_depth(scene: mi.Scene) -> tuple[int, str]:
+    """The scene's own integrator depth (UNBOUNDED for -1 or none), so the optimized image
+    matches the scene's look."""
     m = re.search(r"max_depth\s*=\s*(-?\d+)", str(scene.integrator()))
     if not m:
         return DEFAULT_MAX_DEPTH, "default"
     depth = int(m.group(1))
-    if depth < 0 or depth > DEPTH_CAP:
-        shown = "unbounded depth" if depth < 0 or depth >= 2**31 else depth
-        return DEPTH_CAP, (f"the scene's {shown} capped: long paths (albedo near 1) would "
-                           "make every iteration as slow as its longest path")
-    return depth, "the scene's"
+    return (UNBOUNDED if depth < 0 or depth >= 2**31 - 1 else depth), "the scene's"
 
 
-def choose(scene: mi.Scene, selected: list[str]) -> tuple[mi.Integrator, str, str]:
-    """(integrator, name, reason)."""
-    depth, origin = max_depth(scene)
+def choose(scene: mi.Scene, selected: list[str]) -> Chosen:
+    depth, origin = scene_depth(scene)
     geometry = [k for k in selected if k.endswith(_GEOMETRY)]
     if has_media(scene):
-        name, why = "prbvolpath", "the scene has participating media"
-    elif geometry:
+        return Chosen("prbvolpath", "the scene has participating media", depth, origin)
+    if geometry:
         # Projective sampling of visibility edges is costly (prb_projective: ~30x prb on a
         # CPU); a scene that only needs direct light gets the much cheaper direct_projective.
         direct = str(scene.integrator()).startswith("Direct") or 0 < depth <= 2
-        name = "direct_projective" if direct else "prb_projective"
-        why = f"{geometry[0]} moves visibility edges, which needs projective sampling"
-    else:
-        name, why = "prb", "surface materials only: prb is the cheapest unbiased choice"
-    props = {"type": name} if name == "direct_projective" else {"type": name, "max_depth": depth}
-    integrator = mi.load_dict(props)
-    if name == "direct_projective":
-        return integrator, name, f"{why}; the scene renders direct light only"
-    return integrator, name, f"{why}; max_depth {depth} ({origin})"
+        return Chosen("direct_projective" if direct else "prb_projective",
+                      f"{geometry[0]} moves visibility edges, which needs projective sampling",
+                      depth, origin)
+    return Chosen("prb", "surface materials only: prb is the cheapest unbiased choice", depth,
+                  origin)
+
+
+def make(name: str, max_depth: int) -> mi.Integrator:
+    props = {"type": name} if name == "direct_projective" else {"type": name,
+                                                               "max_depth": max_depth}
+    return mi.load_dict(props)
 
 
 def medium_notes(scene: mi.Scene, selected: list[str]) -> list[str]:

@@ -105,6 +105,11 @@ def property_name(key: str) -> str:
     return parts[-1] if parts else key
 
 
+def medium_property(key: str) -> bool:
+    """A participating medium's albedo, extinction or density."""
+    return property_name(key) in _MEDIUM
+
+
 def dielectric_eta(key: str) -> bool:
     """`obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's complex
     IOR is a texture (`obj.eta.value`) and only needs to be non-negative."""
@@ -241,7 +246,7 @@ def default_learning_rate(info: Info) -> float:
         return TEXTURE_LEARNING_RATE
     bounded = math.isfinite(info.lo) and (math.isfinite(info.hi) or info.lo == 0.0)
     small = info.kind in ("scalar", "rgb")
-    medium = property_name(info.key) in _MEDIUM
+    medium = medium_property(info.key)
     return DEFAULT_LEARNING_RATE if bounded and small and not medium else CAUTIOUS_LEARNING_RATE
 
 

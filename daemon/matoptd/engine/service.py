@@ -25,9 +25,9 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import diagnosis, film_filter, images, parameters, scene as scenes, scene_export
+from . import choices, diagnosis, images, parameters, scene as scenes, scene_export
 from .integrator import medium_notes
-from .optimize import Best, Config, Optimization, Reference, Setting
+from .optimize import Best, CheckpointError, Optimization, Reference
 
 
 @dataclass
@@ -172,98 +172,35 @@ class MitsubaEngine:
         began = time.perf_counter()
         keys = [p.key for p in settings.parameters]
         loaded = self.load(settings.scene, keys)
-        notes: list[str] = []
-        if settings.film_height:
-            loaded = self._scale_filters(settings, loaded, keys, notes)
+        chosen = choices.build(settings)
+        loading = choices.Loading(self.layout(settings.scene), lambda path: scenes.load(
+            path, settings.scene.overrides, settings.scene.display, keys,
+            root=self.cache / "scenes" / settings.scene.key))
+        for c in chosen:
+            loaded = c.prepare_scene(loaded, loading)
+        notes = loading.notes
         refs = _references(loaded, settings, self._blob_path, notes)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
-        channels = {k: int(listed[k].shape[-1]) for k in keys if k in listed
-                    and listed[k].kind in ("texture", "volume_grid") and listed[k].shape}
-        truth = {k: self._values(v, f"ground truth of '{k}'") for k, v in settings.truth.items()}
-        config = Config(loss=settings.loss, iterations=settings.iterations,
-                        min_error=settings.min_error, spp=settings.spp, seed=settings.seed,
-                        cosine=settings.schedule == "cosine",
-                        step_per_sensor=settings.sensor_mode == "step_per_sensor",
-                        clamp=settings.clamp, truth=truth, channels=channels,
-                        image_error_every=settings.image_error_every,
-                        image_error_spp=settings.image_error_spp,
-                        fit_exposure=settings.fit_exposure)
-        opt = Optimization(loaded, [Setting(p.key, p.learning_rate, p.lo, p.hi,
-                                            None if p.initial is None else self._values(
-                                                p.initial, f"initial value of '{p.key}'"),
-                                            p.smoothness)
-                                    for p in settings.parameters], refs, config)
+        try:
+            truth = {k: self._values(v, f"ground truth of '{k}'") for k, v in settings.truth.items()}
+            initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
+                       for p in settings.parameters if p.initial is not None}
+            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
+        except CheckpointError as exc:
+            raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
-        opt.notes = notes + opt.choices + medium_notes(loaded, list(opt.settings)) + [
-            f"gradients for: {', '.join(opt.settings)}",
+        opt.notes = notes + opt.choice_notes() + medium_notes(loaded, keys) + [
+            f"gradients for: {', '.join(keys)}",
             f"sensors rendered: {', '.join(map(str, opt.references))}"
             + (f" (not rendered: {', '.join(map(str, skipped))})" if skipped else "")]
-        if opt.gains:
-            opt.notes.append(
-                "exposure gains: one RGB gain per reference, fitted with the parameters (render "
-                "x gain ~ reference), from 1, in log space; a gain trades off against the "
-                "overall scale of reflectance and emission, so keep some of it known and fixed "
-                "(a white surface, the light's radiance) or the split between them is arbitrary")
-        if checkpoint is not None:
-            try:
-                opt.restore(checkpoint)
-            except (ValueError, KeyError, OSError) as exc:
-                raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
-        else:
+        if checkpoint is None:
             opt.elapsed += time.perf_counter() - began
-        shapes = {k: list(listed[k].shape) if k in listed else [] for k in opt.settings}
-        kinds = {k: listed[k].kind if k in listed else "vector" for k in opt.settings}
+        shapes = {k: list(listed[k].shape) if k in listed else [] for k in keys}
+        kinds = {k: listed[k].kind if k in listed else "vector" for k in keys}
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
                              shapes, kinds, settings.max_samples)
         return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
-                           list(opt.references), opt.notes, shapes, kinds)
-
-    def _scale_filters(self, settings: api.JobSettings, loaded: mi.Scene, keys: list[str],
-                       notes: list[str]) -> mi.Scene:
-        """The scene again, with the reconstruction filter of each sensor whose film height
-        ``settings.film_height`` changes scaled by the same ratio (``film_filter``); a filter
-        Mitsuba does not let be sized is left as it is, with a note."""
-        sizes: dict[str, film_filter.Scaled] = {}
-        for index in sorted({r.sensor for r in settings.references}):
-            sensor = loaded.sensors()[index]
-            height = int(sensor.film().crop_size()[1])
-            ratio = settings.film_height / height
-            rfilter = sensor.film().rfilter()
-            name = str(rfilter).split("[")[0]
-            plugin = film_filter.PLUGINS.get(name, name)
-            scaled = film_filter.scale(plugin, rfilter.radius(), ratio)
-            if ratio == 1 or plugin == "box":  # a box filter is one pixel at any size
-                continue
-            if scaled is None:
-                notes.append(f"warning: sensor {index} renders at {ratio:g}x the scene's film "
-                             f"height, but its {plugin} reconstruction filter has a fixed "
-                             f"radius of {rfilter.radius():g} px, which Mitsuba does not let "
-                             "be scaled: renders blur differently from references made at the "
-                             "scene's size; use a gaussian or tent filter, or references at "
-                             "this resolution")
-            else:
-                sizes[sensor.id()] = scaled
-                notes.append(f"sensor {index}: {plugin} reconstruction filter {scaled.property} "
-                             f"scaled from {scaled.before:g} to {scaled.after:g} px ({ratio:g}x,"
-                             " with the film height), so renders blur as at the scene's size")
-        if not sizes:
-            return loaded
-        main = self.layout(settings.scene)
-        xml, missing = film_filter.rewrite(main.read_bytes(), sizes)
-        for sensor_id in missing:
-            notes.append(f"warning: the film of sensor '{sensor_id}' is not written in the "
-                         "main XML, so its reconstruction filter was not scaled with the film")
-        if len(missing) == len(sizes):
-            return loaded
-        path = main.parent / f".filters-{hashlib.sha256(xml).hexdigest()[:16]}.xml"
-        if not path.exists():
-            fd, tmp = tempfile.mkstemp(dir=main.parent, prefix=".write-")
-            with os.fdopen(fd, "wb") as f:
-                f.write(xml)
-            os.replace(tmp, path)
-        del loaded
-        return scenes.load(path, settings.scene.overrides, settings.scene.display, keys,
-                           root=self.cache / "scenes" / settings.scene.key)
+                           list(opt.references), opt.notes, shapes, kinds, opt.status())
 
     def _run(self, job: str) -> Run:
         try:
@@ -288,7 +225,7 @@ class MitsubaEngine:
         # The last step's backward pass stays pending, as in a plain loop: the next iteration
         # (or a checkpoint) evaluates it. The watchdog gives a checkpoint an iteration's time.
         return api.Progress(records, done, reason, opt.best.iteration, opt.best.loss,
-                            opt.elapsed, _counters(opt))
+                            opt.elapsed, _counters(opt), opt.status())
 
     def checkpoint(self, job: str) -> bytes:
         return self._run(job).opt.checkpoint()
@@ -323,7 +260,7 @@ class MitsubaEngine:
             if key not in trajectories and len(means) >= 20:
                 trajectories[key] = np.array(means)[:, None]
         notes = diagnosis.diagnose(
-            opt.settings, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
+            opt.kept, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
             opt.skipped_steps, trajectories,
             {k: e for k, e in errors.items() if len(e) == len(history)}, opt.gradients)
         return api.Finished(results, notes, _counters(opt))

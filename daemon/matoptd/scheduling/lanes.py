@@ -204,7 +204,7 @@ class Lane:
             record.integrator, record.integrator_reason = (started.integrator,
                                                            started.integrator_reason)
             record.worker, record.sensors = action.worker, list(started.sensors)
-            record.shapes = dict(started.shapes)
+            record.shapes, record.choices = dict(started.shapes), list(started.choices)
             record.notes.extend(n for n in started.notes if n not in record.notes)
             if record.resumed_from == RESUME_PENDING:
                 record.resumed_from = (f"checkpoint at iteration {started.iteration}"
@@ -225,6 +225,7 @@ class Lane:
             record.best_iteration = progress.best_iteration
             record.best_loss = progress.best_loss if math.isfinite(progress.best_loss) else 0.0
             record.elapsed, record.counters = progress.seconds, progress.counters
+            record.choices = list(progress.choices)
             record.updated = self.state.clock.time()
             self.store.put_job(record)
             job, snapshot = self.scheduler.jobs[record.name], record.snapshot()

@@ -129,7 +129,7 @@ def spec_to_pb(job: JobRecord) -> pb.JobSpec:
         sensor_mode=enums.parse(pb.SensorMode, s.sensor_mode), clamp=s.clamp,
         film_height=s.film_height, ground_truth=values_to_pb(s.truth, {}),
         image_error_every=s.image_error_every, image_error_spp=s.image_error_spp,
-        fit_exposure=s.fit_exposure)
+        fit_exposure=s.fit_exposure, choices=s.choices)
     if s.learning_rate is not None:
         spec.learning_rate = s.learning_rate
     return spec
@@ -161,7 +161,11 @@ def job_to_pb(job: JobRecord) -> pb.Job:
         error=job.error, stop_reason=job.stop_reason, resumed_from=job.resumed_from,
         create_time=timestamp(job.created), update_time=timestamp(job.updated),
         notes=job.notes + ([END_PHASE + phase] if phase else []),
-        clamped_components=c.clamped_components, worker=job.worker)
+        clamped_components=c.clamped_components, worker=job.worker,
+        choices=[pb.Choice(name=x.name, on=x.on, why=x.why,
+                           seconds_per_iteration=x.seconds_per_iteration,
+                           setup_seconds=x.setup_seconds, switchable=x.switchable)
+                 for x in job.choices])
 
 
 def reference_names(job: JobRecord) -> dict[int, str]:

@@ -16,8 +16,8 @@ from .. import range_notes
 from ..engine_api import ParameterInfo
 from ..errors import FailedPrecondition, InvalidArgument
 from ..records import ResultRecord, SceneRecord
-from ..settings import (JobSettings, ParameterSetting, ReferenceInput, SceneInput, Values,
-                        read_values)
+from ..settings import (ALL_CHOICES, CHOICE_VALUES, CHOICES, JobSettings, ParameterSetting,
+                        ReferenceInput, SceneInput, Values, read_values)
 from .convert import given_values
 
 PARAMETER_KINDS_SMOOTHED = ("texture", "volume_grid")
@@ -95,7 +95,24 @@ def _settings(spec: pb.JobSpec) -> dict:
     given.update({name: getattr(spec, name) for name in
                   ("seed", "clamp", "film_height", "image_error_every", "image_error_spp",
                    "fit_exposure") if getattr(spec, name)})
+    if spec.choices:
+        given["choices"] = _choices(spec.choices)
     return given
+
+
+def _choices(choices) -> dict[str, str]:
+    """JobSpec.choices: names the engine has (or "all"), values it accepts."""
+    names = [*CHOICES, ALL_CHOICES]
+    for name, value in choices.items():
+        if name not in names:
+            close = difflib.get_close_matches(name, names, n=1)
+            raise InvalidArgument(f"unknown choice '{name}'"
+                                  + (f" (did you mean '{close[0]}'?)" if close else "")
+                                  + f"; the choices are {', '.join(names)}")
+        if value not in CHOICE_VALUES:
+            raise InvalidArgument(f"choice '{name}' cannot be '{value}': give "
+                                  f"{' or '.join(CHOICE_VALUES)}")
+    return dict(choices)
 
 
 def _references(spec: pb.JobSpec, scene: SceneRecord) -> list[ReferenceInput]:

@@ -1,0 +1,445 @@
+"""The thesis's Tables 2 and 4 on its own scene files (github: sapo17/BachelorThesis, read from
+``--thesis-repo DIR``; nothing of it is copied into this repository, which its missing licence
+rules out): Mitsuba's plain Adam loop with the thesis's settings against a daemon job with the
+daemon's defaults, over several seeds, alternating.
+
+Scenes as shipped, set only through their own ``<default>``s, as a user would: ``integrator``
+(Mitsuba 3.9 has no ``prb_reparam``: ``prb`` for Table 2, ``prbvolpath`` for Table 4),
+``resx``/``resy`` (the film and its Gaussian filter at the size rendered, so reference and job
+blur alike) and nothing else: Table 2's ``max_depth`` stays -1 and Table 4's 64. The reference
+is rendered by the daemon at the truth with the scene's own integrator (REF_SPP); both methods
+fit that very image.
+
+- Table 2 (``translucent-principled-bsdf/scene-bunny.xml``): truth roughness 0.01, base_color
+  (0.412, 0.824, 0.999), spec_trans 0.9, eta 1.49; start 0.5, 0.1 grey, 0.02, 1.54. The plain
+  loop has the thesis's settings for it: Adam 0.03, MSE, 16 spp, constant rate.
+- Table 4 (``translucent-participating-media/scene-homogeneuous-bunny.xml``): truth alpha
+  0.01, albedo (0.412, 0.824, 0.999), sigma_t 0.4, eta 1.49; start 0.98, 0.01 grey, 0.99, 1.55.
+  Plain: Adam 0.03, eta's rate 0.003 and eta <= 1.55 (the thesis's), MSE, 8 spp, constant.
+
+Both sides clip to the ranges the daemon lists (besides the thesis's eta bound on the plain
+side). The daemon job sets only the parameters, their starts, the ground truth, the seed and
+the iteration count. Where the daemon has named choices (``Job.choices``), each one in force is
+also run turned off (``JobSpec.choices``: NAME "off"), one at a time, and the ``plain`` preset
+(no choices, constant rate, the plain loop's rates, spp and bounds) gives the cost of an
+iteration at equal work. Table 2 also runs with ``max_depth`` 64 set on the scene, the depth
+the daemon used to cap an unbounded one at.
+
+Per run: seconds per iteration (from the end of iteration 0 to the end of the last, so loading
+and the first kernels stay out), the time at which every target parameter is within 1% (2%)
+of the truth and stays there to the end ("never" when it is not at the end), and the final
+relative error of each parameter (rmse / rms(truth); a principled roughness as alpha =
+max(0.001, r^2), a microfacet alpha as it is). Per seed and as median (min-max).
+
+Sizes: ``--film``/``--iterations`` (default 683x512 and 150 iterations on a CUDA variant,
+128x96 and 100 on the CPU); ``--seeds`` (default 3). ``--quick``: 64x48, 20 iterations, one
+seed, no on/off runs.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import common
+import plain
+from common import Result, Settings, Target
+from matopt import client as mc
+from matopt_api.v1 import matopt_pb2 as pb
+
+# The bench's own daemon renders 1024-spp references at 683x512 in one call.
+DAEMON = {"extra": ("--max-samples", str(2**32 - 1))}
+REF_SPP = 1024
+WARM_UP = 3  # iterations of each side before the runs (kernels compiled, not counted)
+
+
+@dataclass(frozen=True)
+class Table:
+    name: str
+    path: str                        # in the thesis's repository
+    integrator: str                  # its `$integrator`: what a user sets on Mitsuba 3.9
+    truth: dict[str, list[float]]
+    start: dict[str, list[float]]
+    targets: tuple[str, ...]         # what "within 1% / 2%" is about
+    plain_spp: int
+    plain_rates: dict[str, float] = field(default_factory=dict)
+    plain_max: dict[str, float] = field(default_factory=dict)
+    with_depth_64: bool = False      # also run with max_depth 64 set on the scene
+
+
+B, M = "object_bsdf", "medium1"
+BLUE = [0.412, 0.824, 0.999]
+TABLES = [
+    Table("table2", "scenes/material-preview/translucent-principled-bsdf/scene-bunny.xml", "prb",
+          {f"{B}.roughness.value": [0.01], f"{B}.base_color.value": BLUE,
+           f"{B}.spec_trans.value": [0.9], f"{B}.eta": [1.49]},
+          {f"{B}.roughness.value": [0.5], f"{B}.base_color.value": [0.1] * 3,
+           f"{B}.spec_trans.value": [0.02], f"{B}.eta": [1.54]},
+          (f"{B}.base_color.value", f"{B}.spec_trans.value", f"{B}.eta"), plain_spp=16,
+          with_depth_64=True),
+    Table("table4", "scenes/material-preview/translucent-participating-media/"
+          "scene-homogeneuous-bunny.xml", "prbvolpath",
+          {f"{B}.alpha.value": [0.01], f"{M}.albedo.value.value": BLUE,
+           f"{M}.sigma_t.value.value": [0.4], f"{B}.eta": [1.49]},
+          {f"{B}.alpha.value": [0.98], f"{M}.albedo.value.value": [0.01] * 3,
+           f"{M}.sigma_t.value.value": [0.99], f"{B}.eta": [1.55]},
+          (f"{M}.albedo.value.value", f"{M}.sigma_t.value.value", f"{B}.eta"), plain_spp=8,
+          plain_rates={f"{B}.eta": 0.003}, plain_max={f"{B}.eta": 1.55}),
+]
+
+
+@dataclass
+class Plan:
+    film: tuple[int, int]
+    iterations: int
+    seeds: int
+    on_off: bool
+    gpu: bool
+
+
+def plan(settings: Settings, variant: str) -> Plan:
+    gpu = variant.startswith("cuda")
+    film = settings.film or ((64, 48) if settings.quick else (683, 512) if gpu else (128, 96))
+    iterations = settings.iterations or (20 if settings.quick else 150 if gpu else 100)
+    seeds = settings.seeds or (1 if settings.quick else 3)
+    return Plan(film, iterations, seeds, not settings.quick, gpu)
+
+
+# -- errors -----------------------------------------------------------------------------------
+
+def shown(key: str, value) -> np.ndarray:
+    """The value compared: a principled roughness as the alpha it shows."""
+    v = np.asarray(value, dtype=np.float64)
+    return np.maximum(0.001, v * v) if key.endswith("roughness.value") else v
+
+
+def relative_error(key: str, value, truth) -> float:
+    v, t = shown(key, value), shown(key, truth)
+    return float(np.sqrt(np.mean((v - t) ** 2)) / np.sqrt(np.mean(t ** 2)))
+
+
+def time_staying(seconds: list[float], errors: list[dict[str, float]], keys, threshold: float
+                 ) -> float | None:
+    """The time of the first iteration from which on every key stays within ``threshold``."""
+    at = None
+    for s, e in zip(seconds, errors):
+        if all(e[k] <= threshold for k in keys):
+            at = s if at is None else at
+        else:
+            at = None
+    return at
+
+
+@dataclass
+class Run:
+    table: str
+    method: str
+    seed: int
+    per_iteration: float
+    seconds: list[float]
+    errors: list[dict[str, float]]     # per iteration, per key
+    iterations: int
+    values: dict[str, list[float]]     # at the end
+    cpu_per_iteration: float           # CPU seconds (the plain loop's process, the daemon's
+                                       # workers): work done, which other tenants disturb less
+    notes: list[str] = field(default_factory=list)
+    integrator: str = ""
+    choices: list = field(default_factory=list)  # pb.Choice of a daemon job
+
+    def staying(self, keys, threshold: float) -> float | None:
+        return time_staying(self.seconds, self.errors, keys, threshold)
+
+    @property
+    def final(self) -> dict[str, float]:
+        return self.errors[-1]
+
+
+# -- the two sides ----------------------------------------------------------------------------
+
+def loadable(xml: Path, repo: Path, out: Path) -> Path:
+    """The XML with every file name made absolute (its folder first, then the repository's
+    root, as the thesis ran it), Windows separators turned and the ``reparam_*`` properties of
+    the removed ``prb_reparam`` dropped (Mitsuba 3.9 refuses them on any other integrator):
+    what a user's script on Linux loads. Written to the bench's scratch space, never into this
+    repository."""
+    text = xml.read_text()
+
+    def absolute(m: re.Match) -> str:
+        name = m.group(2).replace("\\", "/")
+        found = next((p for p in (xml.parent / name, repo / name) if p.exists()), None)
+        return f'{m.group(1)}"{found or name}"'
+
+    text = re.sub(r'(<string\s+name="filename"\s+value=)"([^"]*)"', absolute, text)
+    text = re.sub(r'<\w+\s+name="reparam_\w+"[^>]*/>', "", text)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    return out
+
+
+@dataclass
+class Prepared:
+    table: Table
+    scene: pb.Scene
+    ref_blob: str
+    ref_path: Path
+    plain_xml: Path
+    overrides: dict[str, str]
+    ranges: dict[str, tuple[float, float]]
+
+
+def prepare(client: mc.Client, table: Table, p: Plan, settings: Settings,
+            overrides: dict[str, str] | None = None, reference: tuple[str, Path] | None = None
+            ) -> Prepared:
+    repo = settings.thesis_repo
+    xml = repo / table.path
+    sets = {"integrator": table.integrator, "resx": str(p.film[0]), "resy": str(p.film[1]),
+            **(overrides or {})}
+    main, files = mc.upload_bundle(client, xml, sets, root=repo)
+    scene = client.scenes.CreateScene(pb.CreateSceneRequest(
+        main_file=main, files=files, overrides=sets, request_id=str(uuid.uuid4())))
+    listed = common.parameters(client, scene)
+    if reference is None:
+        image = client.scenes.RenderScene(pb.RenderSceneRequest(
+            name=scene.name, spp=REF_SPP if not settings.quick else 128, sensors=[0], seed=12345,
+            parameters=[pb.ParameterValue(key=k, value=v) for k, v in table.truth.items()]
+        )).images[0]
+        path = settings.work / "references" / f"{table.name}-{image.exr_blob[6:18]}.exr"
+        mc.download_blob(client, image.exr_blob, path)
+        reference = (image.exr_blob, path)
+    ranges = {k: (listed[k].min, table.plain_max.get(k, listed[k].max)) for k in table.start}
+    plain_xml = loadable(xml, repo, settings.work / "plain" / f"{table.name}.xml")
+    return Prepared(table, scene, reference[0], reference[1], plain_xml, sets, ranges)
+
+
+def run_plain(prep: Prepared, p: Plan, seed: int, variant: str, iterations: int) -> Run:
+    t = prep.table
+    spec = plain.PlainSpec(prep.plain_xml, prep.ref_path, t.start, iterations, t.plain_spp,
+                           integrator="", overrides=prep.overrides, ranges=prep.ranges,
+                           rates=t.plain_rates, seed=seed * 7919)
+    its = plain.run(spec, variant)
+    errors = [{k: relative_error(k, it.values[k], t.truth[k]) for k in t.truth} for it in its]
+    seconds = [it.seconds for it in its]
+    return Run(t.name, "plain", seed, common.per_iteration(seconds), seconds, errors, len(its),
+               its[-1].values, common.per_iteration([it.cpu for it in its]))
+
+
+def daemon_spec(prep: Prepared, seed: int, iterations: int, choices: dict[str, str] | None = None,
+                preset_plain: bool = False) -> pb.JobSpec:
+    t = prep.table
+    params = []
+    for key, start in t.start.items():
+        param = pb.ParameterSpec(key=key, initial_value=start)
+        if preset_plain:  # the plain loop's rates and bounds: equal work, equal steps
+            param.learning_rate = t.plain_rates.get(key, 0.03)
+            if key in t.plain_max:
+                param.max = t.plain_max[key]
+        params.append(param)
+    spec = pb.JobSpec(scene=prep.scene.name, references=[pb.Reference(blob=prep.ref_blob)],
+                      parameters=params, iterations=iterations, min_error=0.0, seed=seed,
+                      ground_truth=[pb.ParameterValue(key=k, value=v)
+                                    for k, v in t.truth.items()])
+    if preset_plain:
+        spec.spp = t.plain_spp
+        spec.schedule = pb.SCHEDULE_CONSTANT
+        choices = {"all": "off", **(choices or {})}
+    if choices:
+        spec.choices.update(choices)
+    return spec
+
+
+def run_daemon(server: common.Daemon, prep: Prepared, method: str, spec: pb.JobSpec) -> Run:
+    t = prep.table
+    job = common.run_job(server.client, spec, server=server)
+    common.require_success(job, f"real_scenes {t.name} {method} seed {spec.seed}")
+    values = [{v.key: list(v.value) for v in r.parameters} for r in job.history]
+    errors = [{k: relative_error(k, v[k], t.truth[k]) for k in t.truth if k in v} for v in values]
+    return Run(t.name, method, spec.seed, common.per_iteration(job.seconds), job.seconds,
+               errors, len(job.history), values[-1], common.per_iteration(job.cpu_workers),
+               list(job.job.notes),
+               f"{job.job.integrator}: {job.job.integrator_reason}",
+               list(getattr(job.job, "choices", [])))
+
+
+def has_choices() -> bool:
+    return "choices" in pb.JobSpec.DESCRIPTOR.fields_by_name
+
+
+# -- the runs ---------------------------------------------------------------------------------
+
+def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) -> list[Run]:
+    client, variant = server.client, server.variant
+    prep = prepare(client, table, p, settings)
+    runs: list[Run] = []
+    # Kernels compiled for both sides before anything is timed.
+    run_plain(prep, p, 99, variant, WARM_UP)
+    run_daemon(server, prep, "warm-up", daemon_spec(prep, 99, WARM_UP))
+
+    def log(run: Run) -> None:
+        runs.append(run)
+        print(f"bench: real_scenes {run.table} {run.method} seed {run.seed}: "
+              f"{run.per_iteration:.3f} s/it, worst final "
+              f"{max(run.final[k] for k in table.targets):.4f}", flush=True)
+
+    for seed in range(p.seeds):
+        pair = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
+                lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
+                                                                            p.iterations)))]
+        for fn in (pair if seed % 2 == 0 else pair[::-1]):
+            fn()
+    if p.on_off and has_choices():
+        for seed in range(p.seeds):
+            log(run_daemon(server, prep, "daemon, plain preset",
+                           daemon_spec(prep, seed, p.iterations, preset_plain=True)))
+        names = sorted({c.name for r in runs if r.method == "daemon" for c in r.choices
+                        if c.switchable and c.on})
+        for name in names:
+            for seed in range(p.seeds):
+                log(run_daemon(server, prep, f"daemon, {name} off",
+                               daemon_spec(prep, seed, p.iterations, {name: "off"})))
+    if p.on_off and table.with_depth_64:
+        deep = prepare(client, table, p, settings, {"max_depth": "64"},
+                       (prep.ref_blob, prep.ref_path))
+        for seed in range(p.seeds):
+            log(run_daemon(server, deep, "daemon, max_depth 64 set",
+                           daemon_spec(deep, seed, p.iterations)))
+    return runs
+
+
+# -- the report -------------------------------------------------------------------------------
+
+def _short(key: str) -> str:
+    name = [x for x in key.split(".") if x != "value"][-1]
+    return "alpha (of roughness)" if name == "roughness" else name
+
+
+def _t(seconds: float | None) -> str:
+    return "never" if seconds is None or math.isinf(seconds) else f"{seconds:.1f}"
+
+
+def _spread_t(values: list[float | None]) -> str:
+    xs = [math.inf if v is None else v for v in values]
+    return f"{_t(common.median(xs))} ({_t(min(xs))}-{_t(max(xs))})"
+
+
+def _spread(values: list[float], fmt: str = "{:.4f}") -> str:
+    return f"{fmt.format(common.median(values))} ({fmt.format(min(values))}-" \
+           f"{fmt.format(max(values))})"
+
+
+def table_lines(table: Table, p: Plan, runs: list[Run]) -> list[str]:
+    keys = list(table.truth)
+    methods = list(dict.fromkeys(r.method for r in runs))
+    head = ("| method | s / iteration | CPU s / iteration | to 2% staying (s) | to 1% staying (s) "
+            "| " + " | ".join(f"final {_short(k)}" for k in keys) + " |")
+    out = [head, "|" + "---|" * (5 + len(keys))]
+    for m in methods:
+        rs = [r for r in runs if r.method == m]
+        out.append(f"| {m} | {_spread([r.per_iteration for r in rs], '{:.3f}')} | "
+                   f"{_spread([r.cpu_per_iteration for r in rs], '{:.3f}')} | "
+                   f"{_spread_t([r.staying(table.targets, 0.02) for r in rs])} | "
+                   f"{_spread_t([r.staying(table.targets, 0.01) for r in rs])} | "
+                   + " | ".join(_spread([r.final[k] for r in rs]) for k in keys) + " |")
+    out += ["", "Per seed:", "", "| method | seed | s / iteration | to 2% | to 1% | "
+            + " | ".join(_short(k) for k in keys) + " |", "|" + "---|" * (5 + len(keys))]
+    for r in runs:
+        out.append(f"| {r.method} | {r.seed} | {r.per_iteration:.3f} | "
+                   f"{_t(r.staying(table.targets, 0.02))} | {_t(r.staying(table.targets, 0.01))} "
+                   "| " + " | ".join(f"{r.final[k]:.4f}" for k in keys) + " |")
+    daemon = next((r for r in runs if r.method == "daemon"), None)
+    if daemon is not None:
+        out += ["", f"The job's integrator: {daemon.integrator}."]
+        for c in daemon.choices:
+            out.append(f"- choice `{c.name}` ({'on' if c.on else 'off'}, "
+                       f"{c.seconds_per_iteration * 1000:.1f} ms per iteration): {c.why}")
+    return out
+
+
+def targets(table: Table, p: Plan, runs: list[Run]) -> list[Target]:
+    def of(method: str) -> list[Run]:
+        return [r for r in runs if r.method == method]
+
+    def med_t(rs: list[Run], thr: float) -> float:
+        return common.median([math.inf if (t := r.staying(table.targets, thr)) is None else t
+                              for r in rs])
+
+    def worst(rs: list[Run]) -> float:
+        return common.median([max(r.final[k] for k in table.targets) for r in rs])
+
+    plain_, daemon = of("plain"), of("daemon")
+    keys = ", ".join(_short(k) for k in table.targets)
+    out = []
+    where = "GPU" if p.gpu else "CPU"
+    if table.name == "table2":
+        within = 0.01 if p.gpu else 0.02
+        d, pl = med_t(daemon, within), med_t(plain_, 0.02)
+        bound = 0.5 * pl if p.gpu else pl
+        out.append(Target(
+            f"{where} {table.name}: {keys} within {within:.0%} staying (daemon, median) against "
+            f"{'half ' if p.gpu else ''}the plain loop's time to 2% staying",
+            f"{_t(d)} s vs {_t(pl)} s", math.isfinite(d) and d < bound))
+    else:
+        if p.gpu:
+            d, pl = med_t(daemon, 0.02), med_t(plain_, 0.02)
+            out.append(Target(f"GPU {table.name}: {keys} within 2% staying, daemon vs plain",
+                              f"{_t(d)} s vs {_t(pl)} s", math.isfinite(d) and d < pl))
+        dw, pw = worst(daemon), worst(plain_)
+        out.append(Target(f"{where} {table.name}: worst final error of {keys} (median), daemon "
+                          "vs plain", f"{dw:.4f} vs {pw:.4f}", dw <= pw))
+    equal = of("daemon, plain preset")
+    if equal:
+        ratio = common.median([r.per_iteration for r in equal]) / common.median(
+            [r.per_iteration for r in plain_])
+        cpu = common.median([r.cpu_per_iteration for r in equal]) / common.median(
+            [r.cpu_per_iteration for r in plain_])
+        out.append(Target(f"{where} {table.name}: time per iteration at equal work (plain "
+                          "preset) / plain loop; CPU time per iteration, likewise",
+                          f"{ratio:.3f}; CPU {cpu:.3f} (target <= 1.03)", ratio <= 1.03))
+    return out
+
+
+def run(settings: Settings, server: common.Daemon) -> Result:
+    result = Result("real_scenes", "The thesis's Tables 2 and 4 on its own scenes")
+    if settings.thesis_repo is None:
+        result.targets.append(Target("case ran", "skipped: give --thesis-repo DIR (a checkout "
+                                     "of github.com/sapo17/BachelorThesis)", None))
+        return result
+    p = plan(settings, server.variant)
+    result.lines.append(
+        f"{server.variant}, film {p.film[0]}x{p.film[1]}, {p.iterations} iterations, "
+        f"{p.seeds} seed(s); reference {REF_SPP} spp at the truth with the scene's own "
+        "integrator and depth. Times are the job's optimizing seconds and the plain loop's "
+        "seconds since it began loading; median (min-max) over the seeds.")
+    rows = []
+    for table in TABLES:
+        began = time.perf_counter()
+        try:
+            runs = measure(table, p, settings, server)
+        except Exception as exc:  # noqa: BLE001 - a failed table is a figure too
+            result.targets.append(Target(f"{table.name}: ran",
+                                         f"FAILED: {type(exc).__name__}: {exc}", False))
+            continue
+        result.targets += targets(table, p, runs)
+        result.lines += ["", f"**{table.name}** (`{table.path}`, integrator "
+                             f"`{table.integrator}`; plain loop: {table.plain_spp} spp"
+                             + (f", rates {table.plain_rates}" if table.plain_rates else "")
+                             + (f", maxima {table.plain_max}" if table.plain_max else "")
+                             + f"; {time.perf_counter() - began:.0f} s)", ""]
+        result.lines += table_lines(table, p, runs)
+        for r in runs:
+            rows.append({"table": r.table, "method": r.method, "seed": r.seed,
+                         "seconds_per_iteration": r.per_iteration,
+                         "cpu_per_iteration": r.cpu_per_iteration, "iterations": r.iterations,
+                         "to_2pct": r.staying(table.targets, 0.02),
+                         "to_1pct": r.staying(table.targets, 0.01),
+                         **{f"final:{_short(k)}": v for k, v in r.final.items()},
+                         **{f"value:{_short(k)}": " ".join(f"{x:.4g}" for x in v)
+                            for k, v in r.values.items()}})
+    if rows:
+        result.files.append(common.write_csv(settings.out / "real_scenes.csv", rows))
+    return result

@@ -1,0 +1,39 @@
+"""The engine's named choices: each special case of the optimization loop (optimize.py) as an
+object that declares its state and its hooks (base.py), in the order the loop calls them.
+
+The order matters where hooks meet: a colour's start is changed (black_start) before it is
+encoded; a texture's coarse level is blown up (multires, ``expand``) before its value is
+decoded, exp(u) (log_space) before the principled roughness's floor (roughness_floor); gains
+multiply the renders (exposure_gains) before eta's differences read them; eta's hold marks it
+frozen before its differences would be rendered for nothing.
+"""
+
+from __future__ import annotations
+
+from ...settings import CHOICES, JobSettings
+from .base import Choice, State, overrides
+from .black_start import BlackStart
+from .depth import Depth
+from .eta_differences import EtaDifferences
+from .eta_hold import EtaHold
+from .exposure_gains import ExposureGains
+from .filter_scaling import FilterScaling, Loading
+from .log_space import LogSpace
+from .multires import Multires
+from .roughness_floor import RoughnessFloor
+from .smoothness import Smoothness
+
+REGISTRY: tuple[type[Choice], ...] = (
+    FilterScaling, Depth, BlackStart, Multires, LogSpace, RoughnessFloor, ExposureGains,
+    Smoothness, EtaHold, EtaDifferences)
+
+# The API names every switchable choice (settings.CHOICES): the two lists are one fact.
+assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"
+
+
+def build(settings: JobSettings) -> list[Choice]:
+    """A job's choices, each on unless its settings turn it off."""
+    return [c(settings) for c in REGISTRY]
+
+
+__all__ = ["Choice", "State", "Loading", "REGISTRY", "build", "overrides"]

@@ -1,0 +1,122 @@
+"""An unbounded or large max_depth cut to what the scene needs, measured at the job's start.
+
+Bounces past some depth d may change the image less than anything the job can see: the least
+such d renders the same light transport, and a symbolic loop runs only as long as its longest
+lane. At the start (unless the user set ``max_depth`` on the scene, which then stands), with
+the job's films and spp and the references' masks as weights:
+
+    A, B    two renders at the scene's own depth, independent samples
+    s2      = mean_w (A - B)^2 / 2            one render's noise variance per pixel
+    c(d)    = mean_w (A - A_d)^2              A_d: A's very samples, paths cut at depth d
+
+and the depth is the least d of LADDER with c(d) < s2 / N: the cut changes the image by less
+than the Monte Carlo noise of the mean of the job's N iterations' renders, which is what the
+optimum averages. c falls with d (A_d holds every bounce of A up to d), so a binary search
+over the ladder takes a few renders. When no d of the ladder below the scene's depth passes,
+the scene's depth stands. The bounces a scene needs depend on its values (a medium's albedo
+near 0 ends paths early, near 1 not), so this is measured with the scene's own values and with
+the job's start, and the larger depth is taken. Table 2 of the thesis (unbounded, 128x96,
+16 spp, 100 iterations) measures 16; Table 4 (64) 32 (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import integrator
+from .base import Choice
+
+MEASURED_ABOVE = 16  # a bounded depth up to this stands as the scene says
+LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
+SEEDS = (0x5EED_0001, 0x5EED_0002)
+
+
+class Depth(Choice):
+    name = "depth"
+
+    def setup(self, loop, state) -> None:
+        chosen = loop.chosen
+        depth = chosen.max_depth
+        shown = "unbounded" if depth < 0 else str(depth)
+        user = "max_depth" in loop.settings.scene.overrides
+        self.applies = chosen.has_depth and (depth < 0 or depth > MEASURED_ABOVE)
+        if user and self.applies:
+            self.applies, self.why = False, ""
+            return
+        if not self.on:
+            self.why = f"the scene's max_depth ({shown}) as it stands"
+            return
+        self.saved = state if state and "depth" in state else None
+
+    def begin(self, loop) -> None:
+        chosen = loop.chosen
+        depth = chosen.max_depth
+        shown = "unbounded" if depth < 0 else str(depth)
+        began = time.perf_counter()
+        if self.saved is not None:
+            cut, change, noise = int(self.saved["depth"][0]), *map(float, self.saved["figures"])
+        else:
+            with loop.holding(loop.scene_values):
+                cut, change, noise = measure(loop, depth)
+            if cut != depth:  # the start may need more bounces than the scene's values
+                start, change_, noise_ = measure(loop, depth, cut)
+                if start != cut:
+                    cut, change, noise = start, change_, noise_
+        self.depth, self.figures = cut, (change, noise)
+        self.setup_seconds = time.perf_counter() - began
+        if cut != depth:
+            chosen.max_depth = cut
+            chosen.depth_origin = (f"the scene's {shown} cut: the bounces past {cut} change the "
+                                   f"image by {change:.3g} (mean square), less than the noise "
+                                   f"of the mean of the job's renders ({noise:.3g})")
+            self.why = (f"max_depth {cut} instead of the scene's {shown}: the bounces past {cut} "
+                        f"change the image by {change:.3g} (mean square), less than the noise "
+                        f"of the mean of the job's renders ({noise:.3g})")
+        else:
+            self.why = (f"the scene's max_depth {shown} kept: cut anywhere below, the image "
+                        f"changes by more than the noise of the mean of the job's renders "
+                        f"({noise:.3g})")
+
+    def state(self):
+        if not (self.on and self.applies):
+            return {}
+        return {"depth": np.array([self.depth], np.int64),
+                "figures": np.array(self.figures, np.float64)}
+
+
+def measure(loop, depth: int, least: int = 0) -> tuple[int, float, float]:
+    """(the depth to render at, the mean square change its cut makes, the noise level it was
+    compared with), the scene as it is now; candidates from ``least`` on."""
+    name = loop.chosen.name
+
+    def renders(d: int, seed: int) -> dict[int, np.ndarray]:
+        it = integrator.make(name, d)
+        with dr.suspend_grad():
+            return {s: np.array(mi.render(loop.scene, loop.params, sensor=s, spp=loop.spp,
+                                          integrator=it, seed=seed), np.float32)[..., :3]
+                    for s in loop.references}
+
+    weights = {s: r.mask() for s, r in loop.references.items()}
+    total = sum(float(np.sum(w)) for w in weights.values())
+
+    def mean(images: dict[int, np.ndarray]) -> float:
+        return sum(float(np.sum(weights[s] * x)) for s, x in images.items()) / max(total, 1.0)
+
+    a, b = renders(depth, SEEDS[0]), renders(depth, SEEDS[1])
+    noise = mean({s: (a[s] - b[s]) ** 2 / 2 for s in a}) / max(1, loop.settings.iterations)
+    candidates = [d for d in LADDER if d >= least and (depth < 0 or d < depth)]
+    best, change = depth, 0.0
+    lo, hi = 0, len(candidates) - 1
+    while lo <= hi:  # the least candidate that passes; c(d) falls with d
+        mid = (lo + hi) // 2
+        cut = renders(candidates[mid], SEEDS[0])
+        c = mean({s: (a[s] - cut[s]) ** 2 for s in a})
+        if c < noise:
+            best, change, hi = candidates[mid], c, mid - 1
+        else:
+            lo = mid + 1
+    return best, change, noise

@@ -1,0 +1,55 @@
+"""Whether a variable still moves steadily, from its recent path: what eta's hold waits for in
+the medium, and what makes eta's differences sparse once eta itself has settled.
+
+Adam's step is about the rate when the gradient keeps its sign (m / sqrt(v) ~ 1), and a small
+fraction of it when noise dominates, so over a window of steps the net move in units of the
+steps the rates allowed,
+
+    share = max_components |u_last - u_first| / sum of the rates of the steps taken,
+
+is about 1 for a steady descent and a fraction for a variable jittering about its optimum
+(momentum correlates the jitter over ~10 steps: 0.2-0.4 in trials). SETTLED splits the two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+WINDOW = 10
+SETTLED = 0.5
+
+
+@dataclass
+class Path:
+    """A variable's last WINDOW + 1 values (in the space it is stepped in) and the rates of the
+    WINDOW steps between them (0 for a step not taken)."""
+
+    values: list[np.ndarray] = field(default_factory=list)
+    rates: list[float] = field(default_factory=list)
+
+    def add(self, value: np.ndarray, rate: float) -> None:
+        """The value before this step and the rate the step will take it with."""
+        self.values = (self.values + [np.asarray(value, np.float64)])[-WINDOW - 1:]
+        self.rates = (self.rates + [rate])[-WINDOW - 1:]
+
+    def settled(self) -> bool:
+        """False until WINDOW steps are known."""
+        if len(self.values) <= WINDOW:
+            return False
+        allowed = sum(self.rates[-WINDOW - 1:-1])
+        moved = float(np.max(np.abs(self.values[-1] - self.values[0])))
+        return allowed <= 0 or moved < SETTLED * allowed
+
+    def state(self, name: str) -> dict[str, np.ndarray]:
+        """As arrays for a checkpoint (a job restored elsewhere decides as this one would)."""
+        values = (np.array(self.values, np.float64).reshape(len(self.values), -1)
+                  if self.values else np.zeros((0, 1)))
+        return {f"{name}.values": values, f"{name}.rates": np.array(self.rates, np.float64)}
+
+    @classmethod
+    def restored(cls, state: dict[str, np.ndarray] | None, name: str) -> "Path":
+        if not state or f"{name}.values" not in state:
+            return cls()
+        return cls(list(state[f"{name}.values"]), state[f"{name}.rates"].tolist())

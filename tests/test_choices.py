@@ -1,0 +1,248 @@
+"""The engine's named choices: which are on for a job's settings, when eta is released from its
+hold (pure logic), and, through a real daemon, what a job's status says of its choices, turning
+one off, and bad names or values refused."""
+
+from __future__ import annotations
+
+import re
+import types
+
+import grpc
+import numpy as np
+import pytest
+
+from matopt_api.v1 import matopt_pb2 as pb
+from matoptd import settings as api
+from matoptd.engine.choices import REGISTRY
+from matoptd.engine.choices.eta_hold import EtaHold
+from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
+
+import thesis_scenes as ts
+from conftest import Daemon, Stubs, wait_iteration, wait_state
+from scenes import PRINCIPLED, create_scene
+from stiff import glass
+
+
+def _settings(**choices: str) -> api.JobSettings:
+    return api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+                           [api.ParameterSetting("obj.eta", 0.01, 1.001, 4.0)],
+                           choices=choices)
+
+
+def test_every_choice_is_on_unless_turned_off_by_name_or_all():
+    assert all(_settings().choice_on(c.name) for c in REGISTRY)
+    off = _settings(eta_differences="off")
+    assert not off.choice_on("eta_differences") and off.choice_on("log_space")
+    plain = _settings(all="off", depth="on")
+    assert plain.choice_on("depth") and not plain.choice_on("log_space")
+    # Choices a setting asks for are not switched by name: they follow that setting.
+    asked = [c.name for c in REGISTRY if not c.switchable]
+    assert sorted(asked) == ["exposure_gains", "smoothness"]
+    assert all(c(_settings(all="off")).on for c in REGISTRY if not c.switchable)
+
+
+def _path(values: list[float], rate: float = 0.1) -> Path:
+    path = Path()
+    for v in values:
+        path.add(np.array([v]), rate)
+    return path
+
+
+def test_a_variable_has_settled_once_it_nets_a_small_share_of_its_steps():
+    # A steady descent moves by about its rate each step: not settled.
+    assert not _path([0.5 - 0.09 * n for n in range(WINDOW + 1)]).settled()
+    # Jitter about the optimum nets a small share of the steps it was allowed: settled.
+    jitter = [0.2 + 0.05 * (-1) ** n for n in range(WINDOW + 1)]
+    assert _path(jitter).settled()
+    # Just past the threshold: a net move of a little more than SETTLED of the allowed steps.
+    assert not _path([0.0] * WINDOW + [1.01 * SETTLED * 0.1 * WINDOW]).settled()
+    assert _path([0.0] * WINDOW + [0.99 * SETTLED * 0.1 * WINDOW]).settled()
+    # Too short a history is never settled; steps not taken (rate 0) allow nothing.
+    assert not _path(jitter[:WINDOW]).settled()
+    frozen = _path([0.3] * (WINDOW + 1), rate=0.0)
+    assert frozen.settled()
+    # A checkpoint's arrays give the same path back.
+    again = Path.restored(_path(jitter).state("p"), "p")
+    assert again.settled() and len(again.values) == WINDOW + 1
+
+
+def _job(stubs, case: ts.Case, iterations: int, **choices: str) -> pb.Job:
+    scene = create_scene(stubs, case.files, case.main)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64)).images[0]
+    spec = pb.JobSpec(scene=scene.name, iterations=iterations, min_error=0,
+                      references=[pb.Reference(blob=ref.exr_blob)],
+                      parameters=[pb.ParameterSpec(key=k, initial_value=list(np.ravel(v)))
+                                  for k, v in case.start.items()])
+    spec.choices.update(choices)
+    name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+    job = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert job.state == pb.JOB_STATE_SUCCEEDED, job.error
+    return job
+
+
+def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
+    """Table 2's kind at 16 px: its roughness is stepped in log space and shown at no less
+    than the floor, its eta is differenced near the specular limit (and not held: there is no
+    medium it could stand in for)."""
+    case = ts.table2(res=16)
+    job = _job(stubs, case, 8)
+    choices = {c.name: c for c in job.choices}
+    assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
+    assert "eta_hold" not in choices
+    assert all(c.on and c.switchable and c.why for c in choices.values())
+    assert "relative" in choices["log_space"].why
+    # Measured: its hooks' time per iteration (the differences render, the floor only maps).
+    assert choices["eta_differences"].seconds_per_iteration >= 0
+    assert choices["roughness_floor"].seconds_per_iteration < 0.01
+    assert any("its rate 0.2 is a relative step" in n for n in job.notes)
+
+    off = _job(stubs, case, 8, eta_differences="off", log_space="off")
+    choices = {c.name: c for c in off.choices}
+    assert not choices["eta_differences"].on and not choices["log_space"].on
+    assert choices["roughness_floor"].on
+    assert choices["eta_differences"].seconds_per_iteration == 0
+    assert not any("central differences" in n or "relative step" in n for n in off.notes)
+
+
+@pytest.mark.parametrize("choices, message", [
+    ({"eta_diferences": "off"}, "unknown choice 'eta_diferences' (did you mean "
+                                "'eta_differences'?)"),
+    ({"depth": "maybe"}, "choice 'depth' cannot be 'maybe': give on or off"),
+])
+def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
+    case = ts.table2(res=8)
+    scene = create_scene(stubs, case.files, case.main)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1)).images[0]
+    spec = pb.JobSpec(scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)],
+                      parameters=[pb.ParameterSpec(key=f"{ts.BSDF}.eta")])
+    spec.choices.update(choices)
+    with pytest.raises(grpc.RpcError) as err:
+        stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert message in err.value.details()
+
+
+def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
+    """Table 4's kind (rough glass around a medium started black): eta stays at its start
+    while albedo and sigma_t still climb, and says so; turned off, it moves at once."""
+    case = ts.table4(res=16)
+    eta = f"{ts.BSDF}.eta"
+
+    def etas(job: pb.Job) -> list[float]:
+        history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+        return [next(v.value[0] for v in r.parameters if v.key == eta) for r in history]
+
+    held = _job(stubs, case, 24)
+    choice = next(c for c in held.choices if c.name == "eta_hold")
+    assert choice.on and "albedo" in choice.why and "sigma_t" in choice.why
+    # No release before WINDOW steps of the others are known.
+    assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
+    free = etas(_job(stubs, case, 12, eta_hold="off"))
+    assert abs(free[-1] - case.start[eta][0]) > 0.02
+
+
+UNBOUNDED = PRINCIPLED.replace(
+    '<integrator type="path"><integer name="max_depth" value="6"/></integrator>',
+    '<default name="max_depth" value="-1"/>\n'
+    '    <integrator type="path"><integer name="max_depth" value="$max_depth"/></integrator>')
+
+
+def test_an_unbounded_depth_is_cut_where_the_image_stops_changing_unless_the_user_sets_it(
+        stubs):
+    """A translucent principled ball (spec_trans 0.7: light bounces inside it) in a scene of
+    unbounded depth: the job measures the depth its images need, says so, and recovers the
+    colour as the unbounded reference shows it; a depth the user sets stands, and one far too
+    shallow (2) leaves the colour off, which is what a cut too shallow would do."""
+    key, truth = "shape_2.bsdf.base_color.value", np.array([0.41, 0.82, 0.99])
+    scene = create_scene(stubs, {"s.xml": UNBOUNDED.encode()}, "s.xml", resx=24, resy=24)
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1024,
+                                                         seed=3)).images[0]
+
+    def run(scene: pb.Scene) -> tuple[pb.Job, float]:
+        spec = pb.JobSpec(scene=scene.name, iterations=40, spp=16, min_error=0,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=key, initial_value=[0.3] * 3)])
+        name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+        job = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert job.state == pb.JOB_STATE_SUCCEEDED, job.error
+        last = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_LAST))
+        value = np.array(next(v.value for v in last.parameters if v.key == key))
+        return job, float(np.sqrt(np.mean((value - truth) ** 2) / np.mean(truth ** 2)))
+
+    job, error = run(scene)
+    cut = re.search(r"max_depth (\d+) \(the scene's unbounded cut: the bounces past \d+ change "
+                    r"the image by", job.integrator_reason)
+    assert cut and 2 < int(cut.group(1)) < 64, job.integrator_reason
+    depth = next(c for c in job.choices if c.name == "depth")
+    assert depth.on and depth.setup_seconds > 0 and f"max_depth {cut.group(1)}" in depth.why
+    assert error < 0.03, error
+
+    shallow = create_scene(stubs, {"s.xml": UNBOUNDED.encode()}, "s.xml", resx=24, resy=24,
+                           max_depth=2)
+    job, shallow_error = run(shallow)
+    assert "max_depth 2 (the scene's)" in job.integrator_reason
+    assert "depth" not in {c.name for c in job.choices}
+    assert shallow_error > 2 * max(error, 0.02), (shallow_error, error)
+
+
+def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
+    """The choices' state travels in the checkpoint. A near-specular glass ball whose eta is
+    differenced at every iteration while it moves and every EVERY-th once it has settled
+    (its recent path decides), paused after that and resumed on single-thread workers
+    (deterministic sums), has the losses and etas of one that was not paused; restarted
+    without its path, eta would be differenced, and stepped, at every iteration again."""
+    daemon = Daemon(tmp_path / "data", None, "--workers", "2").start()
+    try:
+        own = Stubs(daemon.address)
+        scene = create_scene(own, {"g.xml": glass(1.5, alpha=0.01).encode()}, "g.xml")
+        ref = own.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128)).images[0]
+        eta = "ball.bsdf.eta"
+        spec = pb.JobSpec(scene=scene.name, iterations=50, min_error=0,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=eta, initial_value=[1.35])])
+        whole = own.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+        whole = wait_state(own, whole.name, (pb.JOB_STATE_SUCCEEDED,), timeout=600)
+        paused = own.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+        wait_iteration(own, paused.name, 40)
+        own.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
+        at = wait_state(own, paused.name, (pb.JOB_STATE_PAUSED,)).iteration
+        assert 40 <= at < 48
+        own.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
+        done = wait_state(own, paused.name, (pb.JOB_STATE_SUCCEEDED,), timeout=600)
+        assert done.resumed_from == f"checkpoint at iteration {at}", done.resumed_from
+        runs = [own.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=j.name)).iterations
+                for j in (whole, paused)]
+        for field in (lambda r: r.loss, lambda r: r.parameters[0].value[0]):
+            np.testing.assert_allclose([field(r) for r in runs[1]],
+                                       [field(r) for r in runs[0]], rtol=2e-5)
+        # It did go sparse before the pause (else the comparison proves nothing).
+        skipped = [re.search(r"(\d+) iterations without it", next(
+            c.why for c in j.choices if c.name == "eta_differences")) for j in (whole, done)]
+        assert skipped[0] and int(skipped[0].group(1)) >= 3
+        assert skipped[1] and skipped[1].group(1) == skipped[0].group(1)
+        own.close()
+    finally:
+        daemon.stop()
+
+
+def test_the_hold_restores_where_it_stood():
+    """EtaHold's state (when it was released, and the medium's recent path) sets up a hold
+    that decides as the saved one would."""
+    settings = api.JobSettings(
+        api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+        [api.ParameterSetting("obj.eta", 0.01, 1.001, 4.0),
+         api.ParameterSetting("m.albedo.value.value", 0.03, 0.0, 1.0)], iterations=100)
+    loop = types.SimpleNamespace(
+        parameters={p.key: p for p in settings.parameters}, settings=settings,
+        starts={"obj.eta": np.array([1.5]), "m.albedo.value.value": np.array([0.1] * 3)})
+    hold = EtaHold(settings)
+    hold.setup(loop, None)
+    assert hold.applies and hold.released == -1
+    for n in range(WINDOW):
+        hold.paths["m.albedo.value.value"].add(np.array([0.1 + 0.03 * n] * 3), 0.03)
+    hold.released = 42
+    again = EtaHold(settings)
+    again.setup(loop, hold.state())
+    assert again.released == 42 and "released at iteration 42" in again.why
+    path = again.paths["m.albedo.value.value"]
+    assert len(path.values) == WINDOW and path.rates == [0.03] * WINDOW
