@@ -50,7 +50,7 @@ import numpy as np
 import common
 import plain
 from common import Result, Settings, Target
-from matopt import client as mc
+from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
 # The bench's own daemon renders 1024-spp references at 683x512 in one call.

@@ -1,4 +1,4 @@
-"""Scaling a film's reconstruction filter with JobSpec.resolution (pure rule, no Mitsuba)."""
+"""Scaling a film's reconstruction filter with JobSpec.film_height (pure rule, no Mitsuba)."""
 
 from __future__ import annotations
 
