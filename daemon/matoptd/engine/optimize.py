@@ -141,6 +141,14 @@ class Best:
     gains: dict[int, np.ndarray] = field(default_factory=dict)
 
 
+def rate_factor(i: int, iterations: int, cosine: bool) -> float:
+    """The learning rate of step i over the job's own: lr_i = lr * (0.1 + 0.9 * (1 +
+    cos(pi * i / (N - 1))) / 2) under the cosine schedule, 1 under the constant one."""
+    if not cosine or iterations < 2:
+        return 1.0
+    return 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (iterations - 1)))
+
+
 def _seed(base: int, iteration: int, slot: int, slots: int) -> int:
     return (base * 1_000_003 + iteration * slots + slot) % 2**32
 
@@ -180,8 +188,9 @@ class Optimization:
         del widths
         self.params.keep(list(self.settings))
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
-        # per step, the gradient each small parameter stepped on (in its latent space), read
-        # with the next theta: whether the images steered a drift (diagnosis)
+        # per step, the gradient each small parameter and gain stepped on (latent), read
+        # with the next theta: whether the images steered a drift (diagnosis), how noisy
+        # the steps were (uncertainty)
         self.gradients: dict[str, list[np.ndarray]] = {}
         self._stepped: list[dict[str, object]] = []
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
@@ -475,7 +484,7 @@ class Optimization:
         dr.backward(total)
         self._difference_gradients(i, sensors)
         self._sanitize_gradients()
-        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.settings
+        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.rates
                               if dr.width(self.opt[k]) <= SMALL})
         self.opt.step()
         for key in self.gains.values():
@@ -536,12 +545,9 @@ class Optimization:
             dr.set_grad(self.opt[key], mi.Float(slope / len(sensors)))
 
     def _schedule(self, i: int) -> None:
-        # lr_i = lr * (0.1 + 0.9 * (1 + cos(pi * i / (N - 1))) / 2)
-        n = self.config.iterations
-        if not self.config.cosine or n < 2:
-            return
-        f = 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (n - 1)))
-        self.opt.set_learning_rate({k: rate * f for k, rate in self.rates.items()})
+        if self.config.cosine and self.config.iterations >= 2:
+            f = rate_factor(i, self.config.iterations, True)
+            self.opt.set_learning_rate({k: rate * f for k, rate in self.rates.items()})
 
     def _sanitize_gradients(self) -> None:
         bad = 0
