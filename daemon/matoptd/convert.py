@@ -50,14 +50,18 @@ def value(v: pb.ParameterValue | pb.ParameterSpec, read_blob: ReadBlob, blob: st
 
 
 def values_to_pb(values: dict[str, np.ndarray], shapes: dict[str, list[int]],
-                 put_blob: PutBlob | None) -> list[pb.ParameterValue]:
-    """Small values inline; large ones as .npy blobs (or left out when put_blob is None)."""
+                 put_blob: PutBlob | None,
+                 errors: dict[str, api.StandardError] | None = None
+                 ) -> list[pb.ParameterValue]:
+    """Small values inline, with their standard errors when given; large ones as .npy blobs
+    (or left out when put_blob is None)."""
     out = []
     for key, v in values.items():
         v = np.asarray(v, dtype=np.float32).ravel()
         shape = list(shapes.get(key, []))
         if v.size <= api.SMALL:
-            out.append(pb.ParameterValue(key=key, value=v.tolist(), shape=shape))
+            out.append(pb.ParameterValue(key=key, value=v.tolist(), shape=shape,
+                                         **standard_error(errors, key)))
         elif put_blob is not None:
             buf = io.BytesIO()
             np.save(buf, v.reshape(shape) if shape else v)
@@ -149,10 +153,21 @@ def reference_names(spec: pb.JobSpec) -> dict[int, str]:
             for i, r in enumerate(spec.references)}
 
 
-def gains_to_pb(gains: dict[int, np.ndarray], names: dict[int, str]
+def standard_error(errors: dict | None, key) -> dict:
+    """The standard_error and interval fields of a value (none without an estimate)."""
+    e = (errors or {}).get(key)
+    if e is None:
+        return {}
+    return {"standard_error": np.asarray(e.error, dtype=np.float32).tolist(),
+            "interval": [enums.parse(pb.Interval, r) for r in e.reading]}
+
+
+def gains_to_pb(gains: dict[int, np.ndarray], names: dict[int, str],
+                errors: dict[int, api.StandardError] | None = None
                 ) -> list[pb.ReferenceGain]:
     return [pb.ReferenceGain(sensor=s, reference=names.get(s, ""),
-                             rgb=np.asarray(g, dtype=np.float32).ravel().tolist())
+                             rgb=np.asarray(g, dtype=np.float32).ravel().tolist(),
+                             **standard_error(errors, s))
             for s, g in sorted(gains.items())]
 
 
@@ -204,10 +219,12 @@ def result_to_pb(job: str, r: api.Result, shapes: dict[str, list[int]], scene: p
     new = {f"{base}/{path}" if base else path: put_blob(data)
            for path, data in r.scene_files.items()}
     out = pb.JobResult(job=job, which=enums.parse(pb.Which, r.which), iteration=r.iteration,
-                       loss=r.loss, parameters=values_to_pb(r.values, shapes, put_blob),
+                       loss=r.loss,
+                       parameters=values_to_pb(r.values, shapes, put_blob, r.standard_errors),
                        initial_parameters=values_to_pb(r.initial_values, shapes, put_blob),
                        images=[image_to_pb(i, put_blob) for i in r.images],
-                       unplaced_parameters=r.unplaced, gains=gains_to_pb(r.gains, names or {}))
+                       unplaced_parameters=r.unplaced,
+                       gains=gains_to_pb(r.gains, names or {}, r.gain_errors))
     out.scene_files.extend(f for f in scene.files if f.path not in new)
     out.scene_files.extend(pb.BundleFile(path=p, sha256=b.removeprefix("blobs/"))
                            for p, b in new.items())

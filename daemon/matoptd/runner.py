@@ -562,10 +562,13 @@ class Runner:
         scene = self.store.get_scene(job.owner, job.spec.scene)
         shapes = self._shapes.get(job.name, {})
         made = self._images.get(job.name, {})
+        best: list[pb.ParameterValue] = []
         for result in finished.results:
             out = convert.result_to_pb(job.name, result, shapes, scene,
                                        self.store.writer(job.owner),
                                        convert.reference_names(job.spec))
+            if result.which == "best":  # shown by GetJob, with the standard errors
+                best = [p for p in out.parameters if not p.blob]
             images = made.get(result.which, []) + list(out.images)  # sensors, then textures
             del out.images[:]
             out.images.extend(images)
@@ -578,6 +581,7 @@ class Runner:
                 job.notes.append(f"cancelled at iteration {job.iteration}; the results show "
                                  "the best and the last iteration run")
             job.notes.extend(finished.notes)
+            job.best_parameters.extend(best)
             if not cancelled:
                 job.notes.append(stop_note(reason, job))
             convert.counters_to_job(job, finished.counters)
