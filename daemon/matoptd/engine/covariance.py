@@ -82,32 +82,37 @@ def crossed(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> tuple[np.ndarra
     return (m + m.T) / 2, error
 
 
-def determined(hessian: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mask of the determined components, pseudo-inverse of H over their directions).
+def determined(hessian: np.ndarray, spread: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mask of the determined components, pseudo-inverse of H over their directions, mask
+    of the components whose J was too noisy to tell).
 
-    H is scaled to a unit diagonal; its eigenvalues within NOISE_LEVELS of the estimate's
-    noise of 0 (or below) are directions these images do not decide, and a component with
-    more than NULL_WEIGHT of itself in them is not determined. A component with no signal at
-    all (H_kk <= 0) is not either."""
+    A component whose J^T J is within NOISE_LEVELS standard errors of 0 (or below) is too
+    noisy to tell; it is left out, and the others' covariance holds it at its value. H over
+    the rest is scaled to a unit diagonal; its eigenvalues within NOISE_LEVELS standard
+    errors of 0 (or below) are directions these images do not decide, and a component with
+    more than NULL_WEIGHT of itself in them is not determined."""
     p = len(hessian)
     diagonal = np.diag(hessian)
-    alive = diagonal > 0
+    noisy = diagonal <= NOISE_LEVELS * np.diag(spread)
     inverse = np.zeros((p, p))
     ok = np.zeros(p, dtype=bool)
-    if not alive.any():
-        return ok, inverse
-    idx = np.flatnonzero(alive)
+    idx = np.flatnonzero(~noisy & (diagonal > 0))
+    if not idx.size:
+        return ok, inverse, noisy
     scale = 1 / np.sqrt(diagonal[idx])
     h = hessian[np.ix_(idx, idx)] * np.outer(scale, scale)
-    noise = np.linalg.norm(spread[np.ix_(idx, idx)] * np.outer(scale, scale), 2)
+    error = spread[np.ix_(idx, idx)] * np.outer(scale, scale)
     values, vectors = np.linalg.eigh(h)
-    null = values <= max(NOISE_LEVELS * noise, 1e-9 * max(values.max(), 1e-30))
+    # each eigenvalue v^T H v against its own standard error, sqrt(sum (v_k v_l e_kl)^2)
+    noise = np.sqrt(np.einsum("kj,lj,kl->j", vectors ** 2, vectors ** 2, error ** 2))
+    null = values <= np.maximum(NOISE_LEVELS * noise, 1e-9 * max(values.max(), 1e-30))
     weight = np.sum(vectors[:, null] ** 2, axis=1)
     ok[idx] = weight <= NULL_WEIGHT
     kept = vectors[:, ~null]
     inner = (kept / values[~null]) @ kept.T
     inverse[np.ix_(idx, idx)] = inner * np.outer(scale, scale)
-    return ok, inverse
+    return ok, inverse, noisy
 
 
 def positive(m: np.ndarray) -> np.ndarray:
@@ -206,13 +211,14 @@ def gradient_noise(model: np.ndarray, hessian: np.ndarray, scatter: np.ndarray,
 class Estimate:
     covariance: np.ndarray  # latent coordinates; rows of undetermined components are 0
     determined: np.ndarray  # bool per component
+    noisy: np.ndarray       # bool per component: not determined as its J was too noisy
 
 
 def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
     """Cov = Adam's scatter + H^-1 Q_R H^-1 over the determined components; without
     ``dynamics`` (a loss Adam's model does not hold for) the scatter is that of a fit to one
     render, H^-1 Q H^-1."""
-    ok, inverse = determined(fit.hessian, fit.spread)
+    ok, inverse, noisy = determined(fit.hessian, fit.spread)
     reference = positive(inverse @ fit.reference @ inverse)
     if dynamics is None or not len(dynamics.rates):
         scatter = inverse @ fit.noise @ inverse
@@ -225,7 +231,7 @@ def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
         if n:  # b b^T less what the mean gradient's own noise puts in it
             scatter = scatter + positive(np.outer(bias, bias) - inverse @ noise @ inverse / n)
     covariance = (scatter + reference) * np.outer(ok, ok)
-    return Estimate(covariance, ok)
+    return Estimate(covariance, ok, noisy)
 
 
 def remaining(inverse: np.ndarray, gradients: np.ndarray, least: int = 8

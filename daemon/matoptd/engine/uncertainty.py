@@ -39,14 +39,13 @@ import numpy as np
 from .. import engine_api as api
 from ..range_notes import at_bound
 from . import covariance, parameters
-from .diagnosis import DECIDER
+from .diagnosis import DECIDER, DECIDERS
 from .optimize import ETA_STEP, Best, Optimization, rate_factor
 
 FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
 MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
 BUDGET = 0.1          # of the job's optimizing time, for J (its spp follows, down to 1)
-SIGNAL = 8.0          # J^T J's diagonal over its noise that a component's J must reach
-EXTRA = 3.0           # budgets more that components short of SIGNAL may take
+SIGNAL = 8.0          # J^T J's diagonal over its noise that a component's J should reach
 MAX_SAMPLES = 64      # times the job's spp: the most samples one component's J gets
 # Central-difference steps in latent coordinates: large enough that the paths a step
 # switches (a free flight crossing the surface) do not swamp the difference with noise
@@ -157,9 +156,9 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     """J, the render noise and the residual at the values ``params`` holds (set by the
     caller to ``quantities``' values), as H, Q and Q_R.
 
-    J is first estimated at the spp the budget allows (_samples); a component whose J^T J is
-    then less than SIGNAL times its own noise gets more samples, four times as many a round,
-    while the estimate has taken less than EXTRA budgets: a derivative image can be far
+    J is first estimated at the spp that half the budget allows (_samples); a component
+    whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
+    many a round, while the next round fits in the budget: a derivative image can be far
     noisier than its render (a glass ball's eta at 16 spp: noise ten times the signal), and a
     standard error from a J^T J that noise swamps would be noise too."""
     began = time.perf_counter()
@@ -175,13 +174,14 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     one = time.perf_counter() - began_one
     budget = BUDGET * job.seconds
     estimates = 2 * len(sensors) * sum(1 for c in comps if c.key)
-    spp = _samples(budget - (time.perf_counter() - began), estimates, one, full, job.spp)
-    # columns[sensor][n][k]: estimate n (of two) of component k's column, and its spp
+    spp = _samples(budget / 2 - (time.perf_counter() - began), estimates, one, full, job.spp)
+    # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
     todo = [k for k, c in enumerate(comps) if c.key]
     draw = 2
-    while todo:
+    while True:
+        round_began = time.perf_counter()
         for s in sensors:
             for n in (0, 1):
                 for k in todo:
@@ -196,10 +196,12 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         fit = _linearized([_rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
                            for s, sensor in sensors.items()], job.loss)
         signal = np.diag(fit.hessian) / np.maximum(np.diag(fit.spread), 1e-300)
-        spp *= 4
-        todo = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
-        if time.perf_counter() - began > EXTRA * budget:
+        short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
+        # the next round: 4x the samples for the components short of SIGNAL
+        cost = (time.perf_counter() - round_began) * 4 * len(short) / len(todo)
+        if not short or time.perf_counter() - began + cost > budget:
             break
+        todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began)
 
 
@@ -462,7 +464,6 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
     sd = np.sqrt(np.maximum(np.diag(result.covariance), 0))
     errors: dict[str, api.StandardError] = {}
     notes: list[str] = []
-    undecided: list[str] = []
     start = 0
     for q in quantities:
         n = q.channels or q.value.size
@@ -488,8 +489,6 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         span = (np.log(q.hi / lower) if q.log and lower > 0 and math.isfinite(q.hi)
                 else q.hi - q.lo if not q.log else math.inf)
         wide = ok & (latent > 0.25 * (span if math.isfinite(span) else 1.0))
-        for c in np.flatnonzero(~ok):
-            undecided.append(_name(q, c))
         for c in np.flatnonzero(wide):
             what = (f"more than a quarter of its range [{q.lo:g}, {q.hi:g}]" if math.isfinite(span)
                     else "more than a quarter of its value")
@@ -510,12 +509,17 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         gains[s] = api.StandardError(
             np.where(ok, latent * sensor.gain, np.inf).astype(np.float32),
             ["two_sided" if d else "not_determined" for d in ok])
-        undecided += [comps[start - 3 + c].name for c in np.flatnonzero(~ok)]
+    undecided = [c.name for c, d, n in zip(comps, result.determined, result.noisy)
+                 if not d and not n]
     if undecided:
         notes.append(f"not determined by these images: {', '.join(undecided)} (J^T J is "
                      "singular in their direction: the render does not change with them, or "
-                     "changes as it does with others); what would decide them: "
-                     f"{DECIDER}")
+                     f"changes as it does with others); what would decide them: {DECIDERS}")
+    noisy = [c.name for c, n in zip(comps, result.noisy) if n]
+    if noisy:
+        notes.append(f"no standard error for {', '.join(noisy)}: the derivative of the images "
+                     "was too noisy to estimate in the time the estimate may take (the other "
+                     "standard errors hold them at their values)")
     for a, b, r in covariance.correlated(result.covariance, result.determined,
                                          [c.name for c in comps]):
         how = "rises as the other falls" if r < 0 else "moves with the other"
@@ -560,6 +564,7 @@ def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, 
               opt.elapsed / (1 + len(apart)))
     out: dict[str, Estimate] = {}
     linearized: Linearization | None = None
+    began = time.perf_counter()
     for which, it, quantities, sensors, skipped in kept:
         if linearized is None or any(which == k[0] for k in apart):
             with opt.holding(it.values):
@@ -568,6 +573,13 @@ def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, 
         adam = None if job.loss == "mae" else _adam(opt, it)
         out[which] = estimate(linearized, quantities, sensors, job, adam)
         out[which].notes[:0] = skipped
+    seconds = time.perf_counter() - began
+    for e in out.values():
+        e.seconds = seconds
+        if e.names:
+            e.notes.append(f"standard errors: {len(e.names)} components, {seconds:.2g} s "
+                           f"({100 * seconds / max(opt.elapsed, 1e-9):.0f}% of the job's "
+                           f"optimizing time{', two linearizations' if apart else ''})")
     return out
 
 
