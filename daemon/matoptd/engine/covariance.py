@@ -24,9 +24,13 @@ Two things move the value a job ends at away from the truth:
   noise's own E[g^2] (H P H + Q, from this model) plus what Adam measured beyond it (the
   large gradients of a start far from the optimum, which shrink every later step).
 
-At D = H^-1 after one step, P is sigma^2 (J^T J)^-1 with one render's noise: the fit to a
-single image. A long job at a small rate averages many renders and ends far closer than
-that, a short one at a large rate no closer: the model follows the job's own schedule.
+Past a gain D H of 2 a step scatters the value as the fit to the one render it saw,
+sigma^2 (J^T J)^-1 with one render's noise (the textbook estimate); real Adam gets no further,
+as overshoots inflate v. A long job at a small rate averages many renders and ends far closer
+than that: the model follows the job's own schedule. Two figures come from what the job
+recorded: Q is scaled to the variance of the gradients of its last steps (the derivative's
+own noise adds to the render's), and the Gauss-Newton step H^-1 g of their mean gradient, the
+distance a job still converging has left, is added as a bias.
 """
 
 from __future__ import annotations
@@ -72,14 +76,16 @@ class Dynamics:
 
 def crossed(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The symmetric part of a^T diag(weight) b for two independent estimates a, b (rows x p)
-    of one matrix, and each entry's standard error (from its rows' terms). E[a^T W b] is
-    J^T W J, without the variance that a^T W a would add (which makes J^T J look larger and
-    standard errors smaller than they are)."""
-    wa = a * weight[:, None]
-    m = wa.T @ b
-    square = (wa ** 2).T @ (b ** 2)
-    error = np.sqrt(np.maximum((square + square.T + 2 * (wa * b).T @ (wa * b)) / 4, 0))
-    return (m + m.T) / 2, error
+    of one matrix J, and each entry's standard error. E[a^T W b] is J^T W J, without the
+    variance that a^T W a would add (which makes J^T J look larger and standard errors
+    smaller than they are). Per row, a product of two estimates with noise s^2 = (a - b)^2 / 2
+    each varies by J_k^2 s_l^2 + J_l^2 s_k^2 + s_k^2 s_l^2, J^2 estimated by a b."""
+    m = (a * weight[:, None]).T @ b
+    noise = (a - b) ** 2 / 2
+    signal = np.maximum(a * b, 0.0)
+    w2 = (weight ** 2)[:, None]
+    variance = (w2 * signal).T @ noise + (w2 * noise).T @ signal + (w2 * noise).T @ noise
+    return (m + m.T) / 2, np.sqrt(np.maximum(variance, 0))
 
 
 def determined(hessian: np.ndarray, spread: np.ndarray
@@ -212,14 +218,17 @@ class Estimate:
     covariance: np.ndarray  # latent coordinates; rows of undetermined components are 0
     determined: np.ndarray  # bool per component
     noisy: np.ndarray       # bool per component: not determined as its J was too noisy
+    noise: np.ndarray       # the covariance less the remaining distance (a bias, whose
+                            # rank one would make every pair look perfectly correlated)
 
 
 def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
-    """Cov = Adam's scatter + H^-1 Q_R H^-1 over the determined components; without
-    ``dynamics`` (a loss Adam's model does not hold for) the scatter is that of a fit to one
-    render, H^-1 Q H^-1."""
+    """Cov = Adam's scatter + H^-1 Q_R H^-1 + the remaining distance's b b^T, over the
+    determined components; without ``dynamics`` (a loss Adam's model does not hold for) the
+    scatter is that of a fit to one render, H^-1 Q H^-1, and there is no b."""
     ok, inverse, noisy = determined(fit.hessian, fit.spread)
     reference = positive(inverse @ fit.reference @ inverse)
+    bias = np.zeros_like(reference)
     if dynamics is None or not len(dynamics.rates):
         scatter = inverse @ fit.noise @ inverse
     else:
@@ -227,11 +236,11 @@ def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
         first = adam_scatter(hessian, fit.noise, dynamics)
         noise = gradient_noise(fit.noise, hessian, first, dynamics.gradients)
         scatter = adam_scatter(hessian, noise, dynamics)
-        bias, n = remaining(inverse, dynamics.gradients)
+        step, n = remaining(inverse, dynamics.gradients)
         if n:  # b b^T less what the mean gradient's own noise puts in it
-            scatter = scatter + positive(np.outer(bias, bias) - inverse @ noise @ inverse / n)
-    covariance = (scatter + reference) * np.outer(ok, ok)
-    return Estimate(covariance, ok, noisy)
+            bias = positive(np.outer(step, step) - inverse @ noise @ inverse / n)
+    mask = np.outer(ok, ok)
+    return Estimate((scatter + reference + bias) * mask, ok, noisy, (scatter + reference) * mask)
 
 
 def remaining(inverse: np.ndarray, gradients: np.ndarray, least: int = 8

@@ -4,9 +4,10 @@ fed from the job's own scene, references, loss and Adam state.
 J, the derivative of each rendered pixel with respect to each component (in the latent
 coordinates Adam steps on), comes one pass per component: Mitsuba's forward mode
 (``render_forward``) where the integrator has it, else a central difference of two renders
-with the same samples (prbvolpath has no forward mode; a dielectric's eta near the specular
-limit is differenced as the optimizer does, since there prb's derivative misses where the
-refracted rays go). Each column is estimated twice from independent samples, and only
+with the same samples. prbvolpath has no forward mode; a dielectric's eta is differenced
+always: near the specular limit prb's derivative misses where the refracted rays go, and
+elsewhere it agrees with the difference but is far noisier (a rough glass ball at 64 spp:
+J^T J to within 67% against 10%). Each column is estimated twice from independent samples, and only
 products across the two enter J^T J, so J's own noise does not inflate it; a column whose
 J^T J its noise still swamps gets more samples (``linearize``). A gain's column
 is the gained render's channel itself. A texture or grid enters as its mean level per channel
@@ -40,7 +41,7 @@ from .. import engine_api as api
 from ..range_notes import at_bound
 from . import covariance, parameters
 from .diagnosis import DECIDER, DECIDERS
-from .optimize import ETA_STEP, Best, Optimization, rate_factor
+from .optimize import Best, Optimization, rate_factor
 
 FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
 MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
@@ -49,10 +50,12 @@ SIGNAL = 8.0          # J^T J's diagonal over its noise that a component's J sho
 MAX_SAMPLES = 64      # times the job's spp: the most samples one component's J gets
 # Central-difference steps in latent coordinates: large enough that the paths a step
 # switches (a free flight crossing the surface) do not swamp the difference with noise
-# (sigma_t at 2% varied 100% between estimates, at 5% 6%), small enough to stay a slope.
-LOG_STEP = 0.05
-LINEAR_STEP = 0.02    # of the range (of the value's size when the range is unbounded); eta's
-                      # is the optimizer's own (optimize.ETA_STEP)
+# (sigma_t's J^T J at 2% varied 100% between estimates, at 5% 6%), small enough to stay a
+# slope (a secant over +-10% of a smooth curve differs from its slope by ~0.2%).
+LOG_STEP = 0.1
+LINEAR_STEP = 0.05    # of the range (of the value's size when the range is unbounded)
+ETA_STEP = 0.03       # a dielectric's eta: 2% near 1.5, three times the optimizer's
+EXTRA = 2.0           # budgets that components short of SIGNAL may take in all
 DRAW = 0x5EED0E55     # samples of their own, apart from any iteration's
 
 
@@ -67,7 +70,7 @@ class Quantity:
     hi: float
     floor: float = 0.0     # the least value it is shown at (a principled roughness)
     channels: int = 0      # > 0: a texture or grid, estimated as its mean level per channel
-    difference: bool = False  # J by a central difference (a near-specular eta)
+    difference: bool = False  # J by a central difference (a dielectric's eta)
     eta: bool = False      # a dielectric's eta (its difference step)
 
 
@@ -158,7 +161,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
 
     J is first estimated at the spp that half the budget allows (_samples); a component
     whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
-    many a round, while the next round fits in the budget: a derivative image can be far
+    many a round, while the whole fits in EXTRA budgets: a derivative image can be far
     noisier than its render (a glass ball's eta at 16 spp: noise ten times the signal), and a
     standard error from a J^T J that noise swamps would be noise too."""
     began = time.perf_counter()
@@ -199,7 +202,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
         # the next round: 4x the samples for the components short of SIGNAL
         cost = (time.perf_counter() - round_began) * 4 * len(short) / len(todo)
-        if not short or time.perf_counter() - began + cost > budget:
+        if not short or time.perf_counter() - began + cost > EXTRA * budget:
             break
         todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began)
@@ -221,7 +224,7 @@ def estimate(linearization: Linearization, quantities: list[Quantity],
     owner = [c.key or f"gain{c.sensor}" for c in comps]
     index = {c.name: i for i, c in enumerate(comps)}
     traded = {frozenset((owner[index[a]], owner[index[b]]))
-              for a, b, _ in covariance.correlated(result.covariance, result.determined,
+              for a, b, _ in covariance.correlated(result.noise, result.determined,
                                                    list(index))}
     return Estimate(errors, gains, notes, list(index), result.covariance,
                     linearization.seconds, {t for t in traded if len(t) == 2},
@@ -289,7 +292,8 @@ def _column(scene, params, integrator, integrator_name: str, q: Quantity, index:
                 moved = q.value + sign * h * tangent
             # a bound is not crossed: the step shortens on that side
             moved = np.clip(moved, max(q.lo, q.floor), q.hi)
-            params[q.key] = parameters.assign(params[q.key], moved)
+            params[q.key] = side = parameters.assign(params[q.key], moved)
+            dr.make_opaque(side)  # as in forward mode: one kernel for every component
             params.update()
             sides.append((moved, _render(scene, params, integrator, sensor, spp, seed)))
         params[q.key] = parameters.assign(params[q.key], q.value)
@@ -299,13 +303,18 @@ def _column(scene, params, integrator, integrator_name: str, q: Quantity, index:
             else (b - a)
         width = float(np.max(np.abs(latent))) if np.any(latent) else 0.0
         return (image_b - image_a) / width if width > 0 else np.zeros_like(image_a)
+    # Opaque: a literal value or tangent (a scalar's, a colour's) would be compiled into the
+    # kernel, and every component would compile one of its own (0.2 s each at 128x96).
     leaf = parameters.assign(params[q.key], q.value)
+    dr.make_opaque(leaf)
     dr.enable_grad(leaf)
     params[q.key] = leaf
     params.update()
     # The tangent reaches what the plugin derives from the value at update() (a dielectric's
     # 1/eta) before the render, whose forward pass only follows edges made inside it.
-    dr.set_grad(leaf, parameters.assign(leaf, tangent))
+    direction = parameters.assign(leaf, tangent)
+    dr.make_opaque(direction)
+    dr.set_grad(leaf, direction)
     dr.enqueue(dr.ADMode.Forward, leaf)
     dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
     image = integrator.render_forward(scene, params, sensor=sensor, seed=seed, spp=spp)
@@ -324,6 +333,7 @@ class _Rows:
     jb: np.ndarray
     ka: np.ndarray
     kb: np.ndarray
+    weight: np.ndarray    # the loss's own weight of each row (multiscale: its full level's)
     noise: np.ndarray
     residual: np.ndarray
 
@@ -353,14 +363,15 @@ def _rows(index: int, sensor: Sensor, renders: list[np.ndarray],
     residual = (a - ref) * (b - ref)
     # The loss's weight of each row, as losses._mean: sum(w x) / max(sum(w), 1), mean over
     # sensors; multiscale_mse adds the pyramid's levels (K = sum_l D_l^T C_l D_l).
+    c = weight / max(float(weight.sum()), 1.0) / count
     if job.loss == "multiscale_mse":
         ka, kb = (_pyramid(j, weight) / count for j in (ja, jb))
     else:
-        c = weight / max(float(weight.sum()), 1.0) / count
         ka, kb = ja * c[..., None], jb * c[..., None]
     p = ja.shape[-1]
     flat = (lambda x: x.reshape(-1, p))
-    return _Rows(flat(ja), flat(jb), flat(ka), flat(kb), noise.ravel(), residual.ravel())
+    return _Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(), noise.ravel(),
+                 residual.ravel())
 
 
 def _normalized(ja, jb, a, b, ref, weight):
@@ -414,9 +425,8 @@ def _linearized(rows: list[_Rows], loss: str) -> covariance.Linearized:
     h, spread, q, qr = (np.zeros((p, p)) for _ in range(4))
     k = 2.0 if loss == "dual_buffer" else 4.0
     for r in rows:
-        hs, error = covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))
-        h += 2 * hs
-        spread = np.sqrt(spread ** 2 + (2 * error) ** 2)
+        h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
+        spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
         q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
         qr += 4 * covariance.crossed(r.ka, r.kb, r.residual)[0]
     return covariance.Linearized(h, q, qr, spread)
@@ -520,7 +530,7 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         notes.append(f"no standard error for {', '.join(noisy)}: the derivative of the images "
                      "was too noisy to estimate in the time the estimate may take (the other "
                      "standard errors hold them at their values)")
-    for a, b, r in covariance.correlated(result.covariance, result.determined,
+    for a, b, r in covariance.correlated(result.noise, result.determined,
                                          [c.name for c in comps]):
         how = "rises as the other falls" if r < 0 else "moves with the other"
         notes.append(f"{a} and {b} trade off (correlation {r:+.2f} of their estimates: one "
@@ -594,12 +604,9 @@ def _quantities(opt: Optimization, kept: Best, kinds: dict[str, str]
                            "colours, textures and grids are estimated)")
             continue
         lo, hi = parameters.log_bounds(key, s.lo, s.hi) if s.log else (s.lo, s.hi)
-        widths = opt.differenced.get(key)
-        out.append(Quantity(
-            key, value, s.log, lo, hi, s.floor,
-            opt.config.channels.get(key, 1) if summarized else 0,
-            widths is not None and parameters.near_specular(widths, kept.values),
-            parameters.dielectric_eta(key)))
+        eta = parameters.dielectric_eta(key)
+        out.append(Quantity(key, value, s.log, lo, hi, s.floor,
+                            opt.config.channels.get(key, 1) if summarized else 0, eta, eta))
     return out, skipped
 
 
