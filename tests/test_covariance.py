@@ -71,12 +71,12 @@ def test_components_the_images_cannot_tell_apart_are_not_determined():
     j = np.stack([shared, shared, other], axis=1)
     a, b = (j + 0.05 * rng.normal(size=j.shape) for _ in range(2))
     h, spread = crossed(a, b, np.ones(400))
-    ok, inverse = determined(h, spread)
-    assert list(ok) == [False, False, True]
+    ok, inverse, _, groups = determined(h, spread)
+    assert list(ok) == [False, False, True] and groups == [[0, 1]]
     assert inverse[2, 2] == pytest.approx(1 / (other @ other), rel=0.05)
     # A component the render does not depend on at all is not determined either.
     zero = np.stack([other, np.zeros(400)], axis=1)
-    ok, _ = determined(zero.T @ zero, np.zeros((2, 2)))
+    ok, _, _, _ = determined(zero.T @ zero, np.zeros((2, 2)))
     assert list(ok) == [True, False]
 
 

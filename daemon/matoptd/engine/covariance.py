@@ -89,9 +89,10 @@ def crossed(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> tuple[np.ndarra
 
 
 def determined(hessian: np.ndarray, spread: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[list[int]]]:
     """(mask of the determined components, pseudo-inverse of H over their directions, mask
-    of the components whose J was too noisy to tell).
+    of the components whose J was too noisy to tell, the undetermined components grouped by
+    the directions they share: components that change the render as one).
 
     A component whose J^T J is within NOISE_LEVELS standard errors of 0 (or below) is too
     noisy to tell; it is left out, and the others' covariance holds it at its value. H over
@@ -104,8 +105,9 @@ def determined(hessian: np.ndarray, spread: np.ndarray
     inverse = np.zeros((p, p))
     ok = np.zeros(p, dtype=bool)
     idx = np.flatnonzero(~noisy & (diagonal > 0))
+    groups = [[int(k)] for k in np.flatnonzero(~noisy & (diagonal <= 0))]
     if not idx.size:
-        return ok, inverse, noisy
+        return ok, inverse, noisy, groups
     scale = 1 / np.sqrt(diagonal[idx])
     h = hessian[np.ix_(idx, idx)] * np.outer(scale, scale)
     error = spread[np.ix_(idx, idx)] * np.outer(scale, scale)
@@ -118,7 +120,13 @@ def determined(hessian: np.ndarray, spread: np.ndarray
     kept = vectors[:, ~null]
     inner = (kept / values[~null]) @ kept.T
     inverse[np.ix_(idx, idx)] = inner * np.outer(scale, scale)
-    return ok, inverse, noisy
+    for j in np.flatnonzero(null):  # merged where directions share a component
+        group = {int(idx[k]) for k in np.flatnonzero(vectors[:, j] ** 2 > NULL_WEIGHT)}
+        for other in [g for g in groups if group & set(g)]:
+            group |= set(other)
+            groups.remove(other)
+        groups.append(sorted(group))
+    return ok, inverse, noisy, groups
 
 
 def positive(m: np.ndarray) -> np.ndarray:
@@ -220,13 +228,14 @@ class Estimate:
     noisy: np.ndarray       # bool per component: not determined as its J was too noisy
     noise: np.ndarray       # the covariance less the remaining distance (a bias, whose
                             # rank one would make every pair look perfectly correlated)
+    groups: list[list[int]]  # undetermined components that change the render as one
 
 
 def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
     """Cov = Adam's scatter + H^-1 Q_R H^-1 + the remaining distance's b b^T, over the
     determined components; without ``dynamics`` (a loss Adam's model does not hold for) the
     scatter is that of a fit to one render, H^-1 Q H^-1, and there is no b."""
-    ok, inverse, noisy = determined(fit.hessian, fit.spread)
+    ok, inverse, noisy, groups = determined(fit.hessian, fit.spread)
     reference = positive(inverse @ fit.reference @ inverse)
     bias = np.zeros_like(reference)
     if dynamics is None or not len(dynamics.rates):
@@ -240,7 +249,8 @@ def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
         if n:  # b b^T less what the mean gradient's own noise puts in it
             bias = positive(np.outer(step, step) - inverse @ noise @ inverse / n)
     mask = np.outer(ok, ok)
-    return Estimate((scatter + reference + bias) * mask, ok, noisy, (scatter + reference) * mask)
+    return Estimate((scatter + reference + bias) * mask, ok, noisy, (scatter + reference) * mask,
+                    groups)
 
 
 def remaining(inverse: np.ndarray, gradients: np.ndarray, least: int = 8

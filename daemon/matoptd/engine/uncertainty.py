@@ -177,7 +177,10 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     one = time.perf_counter() - began_one
     budget = BUDGET * job.seconds
     estimates = 2 * len(sensors) * sum(1 for c in comps if c.key)
-    spp = _samples(budget / 2 - (time.perf_counter() - began), estimates, one, full, job.spp)
+    def cost(s: int) -> float:  # of one estimate at s spp (_samples)
+        return 2 * (one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1))
+
+    spp = _samples(budget / 2 - (time.perf_counter() - began), estimates, cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
@@ -200,9 +203,11 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
                            for s, sensor in sensors.items()], job.loss)
         signal = np.diag(fit.hessian) / np.maximum(np.diag(fit.spread), 1e-300)
         short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
-        # the next round: 4x the samples for the components short of SIGNAL
-        cost = (time.perf_counter() - round_began) * 4 * len(short) / len(todo)
-        if not short or time.perf_counter() - began + cost > EXTRA * budget:
+        # the next round: 4x the samples for the components short of SIGNAL, at what this
+        # round took scaled by the cost model (small images cost little more at 4x the spp)
+        then = (time.perf_counter() - round_began) * len(short) / len(todo) * (
+            cost(4 * spp) / cost(spp))
+        if not short or time.perf_counter() - began + then > EXTRA * budget:
             break
         todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began)
@@ -235,19 +240,16 @@ def _draw(seed: int, n: int) -> int:
     return (seed * 1_000_003 + DRAW + 7919 * n) % 2**32
 
 
-def _samples(budget: float, estimates: int, one: float, full: float, spp: int) -> int:
+def _samples(budget: float, estimates: int, cost, spp: int) -> int:
     """spp of each J estimate: the job's, or fewer (a power of 2, at least 1) so that
     ``estimates`` of them take about ``budget`` seconds. An estimate costs about two primal
     renders (a forward-mode pass renders the primal and the tangent; a difference renders two
-    sides), and a render about ``one`` (its time at 1 spp: tracing and launching, which small
-    images are made of) plus a share of ``full - one`` (at the job's spp) by its spp."""
-    def cost(s: int) -> float:
-        return estimates * 2 * (one + max(full - one, 0) * (s - 1) / max(spp - 1, 1))
-
+    sides), and a render about its time at 1 spp (tracing and launching, which small images
+    are made of) plus a share of the rest by its spp: ``cost(s)``."""
     s = spp
     # halved while over the budget, but not where halving saves little (small images are
     # mostly tracing and launching: 8 spp cost what 1 does, with 8 times the noise)
-    while s > 1 and cost(s) > budget and cost(s // 2) < 0.8 * cost(s):
+    while s > 1 and estimates * cost(s) > budget and cost(s // 2) < 0.8 * cost(s):
         s //= 2
     return s
 
@@ -519,12 +521,16 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         gains[s] = api.StandardError(
             np.where(ok, latent * sensor.gain, np.inf).astype(np.float32),
             ["two_sided" if d else "not_determined" for d in ok])
-    undecided = [c.name for c, d, n in zip(comps, result.determined, result.noisy)
-                 if not d and not n]
-    if undecided:
-        notes.append(f"not determined by these images: {', '.join(undecided)} (J^T J is "
-                     "singular in their direction: the render does not change with them, or "
-                     f"changes as it does with others); what would decide them: {DECIDERS}")
+    for group in result.groups:
+        names = [comps[k].name for k in group]
+        if len(names) == 1:
+            notes.append(f"{names[0]}: not determined by these images (the render does not "
+                         f"change with it); what would decide it: {DECIDER}")
+        else:
+            notes.append(f"not determined by these images: {', '.join(names)} change the "
+                         "render as one (J^T J is singular in a direction that mixes them), "
+                         f"so only a combination of them is decided; what would decide them: "
+                         f"{DECIDERS}")
     noisy = [c.name for c, n in zip(comps, result.noisy) if n]
     if noisy:
         notes.append(f"no standard error for {', '.join(noisy)}: the derivative of the images "
