@@ -357,7 +357,7 @@ def _rows(index: int, sensor: Sensor, renders: list[np.ndarray],
         j = [col * gain if col is not None else
              image * ((np.arange(3) == c.index) & (c.sensor == index))
              for col, c in zip(cols, comps)]
-        estimates.append(np.stack([x for x in j], axis=-1))  # (H, W, 3, p)
+        estimates.append(np.stack(j, axis=-1))  # (H, W, 3, p)
     ja, jb = estimates
     if job.loss == "brightness_independent_mse":
         ja, jb, a, b, ref = _normalized(ja, jb, a, b, ref, weight)
