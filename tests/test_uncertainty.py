@@ -140,60 +140,6 @@ def _npy_blob(stubs, array) -> str:
     return f"blobs/{upload(stubs, buf.getvalue())}"
 
 
-def thin_cloud(res: int = 32) -> str:
-    """A thin homogeneous medium with a 4^3 RGB albedo grid, lit by a point light against
-    black: the light it scatters grows with albedo times sigma_t, and only its attenuation,
-    faint at sigma_t 0.3, tells the two apart."""
-    return f"""<scene version="3.0.0">
-    <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
-    {camera(res, "0, 0.5, 4")}
-    <emitter type="point" id="lamp"><point name="position" value="3, 3, 3"/>
-        <rgb name="intensity" value="60"/></emitter>
-    <shape type="sphere" id="cloud">
-        <bsdf type="null"/>
-        <medium type="homogeneous" name="interior">
-            <volume type="gridvolume" name="albedo"><string name="filename" value="albedo.vol"/>
-            </volume>
-            <float name="sigma_t" value="0.3"/>
-        </medium>
-    </shape>
-</scene>
-"""
-
-
-def test_a_grid_albedo_and_sigma_t_are_named_together(stubs):
-    """A medium's albedo grid (192 values, past the 64 the history's trade-off check reads)
-    against its sigma_t: the notes name the grid's mean level and sigma_t together, as a pair
-    that trades off or as components the images do not tell apart, and give the grid's mean
-    level a standard error per channel (or say which channels have none)."""
-    import thesis_scenes as ts
-
-    grid_values = ts.albedo_grid(4)
-    scene = create_scene(stubs, {"cloud.xml": thin_cloud().encode(),
-                                 "albedo.vol": vol(grid_values, -1, 1)}, "cloud.xml")
-    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64,
-                                                         sensors=[0], seed=3)).images[0]
-    grid, sigma_t = "cloud.interior_medium.albedo.data", "cloud.interior_medium.sigma_t.value.value"
-    done, result = run(stubs, pb.JobSpec(
-        scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)], iterations=60,
-        parameters=[pb.ParameterSpec(key=grid, initial_blob=_npy_blob(stubs, grid_values)),
-                    pb.ParameterSpec(key=sigma_t, initial_value=[0.3])]))
-    assert any(n.startswith(f"{grid}: its mean level is known to +-") for n in done.notes)
-    together = [n for n in done.notes if f"{grid} (mean level" in n and sigma_t in n]
-    assert together and ("trade off" in together[0] or "change the render as one"
-                         in together[0]), done.notes
-    values = {p.key: p for p in result.parameters}
-    assert not values[grid].standard_error and values[grid].blob
-    assert len(values[sigma_t].standard_error) == len(values[sigma_t].interval) == 1
-
-
-def _npy_blob(stubs, array) -> str:
-    import io
-    buf = io.BytesIO()
-    np.save(buf, np.asarray(array, dtype=np.float32))
-    return f"blobs/{upload(stubs, buf.getvalue())}"
-
-
 def test_the_cli_and_the_export_show_each_value_with_its_standard_error(walls, cli_env,
                                                                         tmp_path):
     import csv
