@@ -24,16 +24,14 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import common
 from common import Result, Settings, Target
-from matopt import workflow
+from matopt import client as mc, workflow
 from matopt_api.v1 import matopt_pb2 as pb
 
 sys.path.insert(0, str(common.ROOT / "tests"))
 import calibration_cases as cal  # noqa: E402
-from scenes import create_scene, studio  # noqa: E402
+from scenes import camera, create_scene, studio  # noqa: E402
 
 SEEDS, QUICK_SEEDS, THESIS_SEEDS = 20, 3, 3
 THESIS_REPO = Path(os.environ.get("MATOPT_THESIS_REPO", "/work/thesis-repo"))
@@ -53,12 +51,7 @@ def balls(res_x: int, res_y: int) -> str:
     </shape>""" for i, c in enumerate(colours))
     return f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="4"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="45"/>
-        <transform name="to_world"><lookat origin="0, 0.6, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="{res_x}"/><integer name="height" value="{res_y}"/>
-            <rfilter type="box"/></film>
-    </sensor>
+    {camera(res_x, "0, 0.6, 5", 45, res_y)}
     {studio(0.6)}{shapes}
 </scene>
 """
@@ -103,7 +96,7 @@ def _procedural(client, seeds: int) -> tuple[list[cal.Component], list[tuple], l
     return components, costs, targets
 
 
-def _balls_cost(client, work: Path, res_x: int, res_y: int, seeds: int) -> list[float]:
+def _balls_cost(client, res_x: int, res_y: int, seeds: int) -> list[float]:
     scene = create_scene(client, {"balls.xml": balls(res_x, res_y).encode()}, "balls.xml")
     listed = {p.key: p for p in client.scenes.ListSceneParameters(
         pb.ListSceneParametersRequest(name=scene.name)).parameters}
@@ -125,12 +118,8 @@ def _balls_cost(client, work: Path, res_x: int, res_y: int, seeds: int) -> list[
     return shares
 
 
-def _wait(client, name: str, timeout: float = 3600) -> pb.Job:
-    deadline = time.time() + timeout
-    while (job := client.jobs.GetJob(pb.GetJobRequest(name=name))).state not in cal.FINAL:
-        if time.time() > deadline:
-            raise RuntimeError(f"job {name} still running after {timeout} s")
-        time.sleep(0.5)
+def _wait(client, name: str) -> pb.Job:
+    job = mc.wait(client, name)
     if job.state != pb.JOB_STATE_SUCCEEDED:
         raise RuntimeError(f"job {name}: {job.error}")
     return job
@@ -227,7 +216,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         lines.append(f"| {name} | cost | {statistics.median(share):.0f}% of the job's time "
                      f"(median; {min(share):.0f}-{max(share):.0f}%) | | |")
     for label, (x, y) in (("32x32", (32, 32)), ("128x96", (128, 96))):
-        shares = _balls_cost(client, settings.work, x, y, 1 if settings.quick else 3)
+        shares = _balls_cost(client, x, y, 1 if settings.quick else 3)
         if shares:
             median = statistics.median(shares)
             lines.append(f"| 16 scalars, {label} | cost | {median:.0f}% of the job's time "

@@ -15,15 +15,15 @@ notes flag ("still moving").
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from matopt import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
 from scenes import create_scene
-from stiff import FINAL, glass, medium_ball, principled_ball
+from stiff import glass, medium_ball, principled_ball
 
 KINDS = ("reflectance", "roughness", "eta", "medium albedo", "sigma_t")
 
@@ -89,8 +89,6 @@ class Run:
     components: list[Component]
     job: pb.Job
     seconds: float                       # the job's optimizing time
-    estimate: float = 0.0                # wall time from the last iteration to the end
-    notes: list[str] = field(default_factory=list)
 
 
 def scene_of(stubs, case: Case) -> pb.Scene:
@@ -100,7 +98,7 @@ def scene_of(stubs, case: Case) -> pb.Scene:
     return create_scene(stubs, {"case.xml": case.xml.encode()}, "case.xml")
 
 
-def run(stubs, case: Case, scene: pb.Scene, seed: int, timeout: float = 900) -> Run:
+def run(stubs, case: Case, scene: pb.Scene, seed: int) -> Run:
     """One seed: a reference of its own (RenderScene at reference_spp with this seed), a
     start near the truth, the job, and its LAST result's components against the truth."""
     listed = {p.key: p for p in stubs.scenes.ListSceneParameters(
@@ -116,12 +114,8 @@ def run(stubs, case: Case, scene: pb.Scene, seed: int, timeout: float = 900) -> 
         start = np.clip(truth * np.exp(rng.uniform(-case.spread, case.spread, truth.size)),
                         p.min, p.max)
         spec.parameters.add(key=key, initial_value=start.tolist())
-    name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
-    deadline = time.time() + timeout
-    while (job := stubs.jobs.GetJob(pb.GetJobRequest(name=name))).state not in FINAL:
-        if time.time() > deadline:
-            raise AssertionError(f"{case.name}: job {name} still {job.state} after {timeout} s")
-        time.sleep(0.1)
+    job = mc.wait(stubs, stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name)
+    name = job.name
     if job.state != pb.JOB_STATE_SUCCEEDED:
         raise AssertionError(f"{case.name} seed {seed}: {job.error}")
     result = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_LAST))
@@ -131,7 +125,7 @@ def run(stubs, case: Case, scene: pb.Scene, seed: int, timeout: float = 900) -> 
         for i, (v, e, interval) in enumerate(zip(p.value, p.standard_error, p.interval)):
             components.append(Component(case.name, case.kinds[p.key], p.key, i, truth[i], v, e,
                                         interval, seed))
-    return Run(components, job, job.elapsed_seconds, notes=list(job.notes))
+    return Run(components, job, job.elapsed_seconds)
 
 
 @dataclass

@@ -502,13 +502,14 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
                 else q.hi - q.lo if not q.log else math.inf)
         wide = ok & (latent > 0.25 * (span if math.isfinite(span) else 1.0))
         for c in np.flatnonzero(wide):
-            what = (f"more than a quarter of its range [{q.lo:g}, {q.hi:g}]" if math.isfinite(span)
-                    else "more than a quarter of its value")
+            what = (f"more than a quarter of its range [{q.lo:g}, {q.hi:g}]"
+                    if math.isfinite(span) else "more than a quarter of its value")
             notes.append(f"{_name(q, c)}: standard error {error[c]:.3g}, {what}: these "
                          f"images do not decide it; what would: {DECIDER}")
         for c in np.flatnonzero(ok & (low | high)):
             bound = lower if low[c] else q.hi
-            notes.append(f"{_name(q, c)}: ended at {'its floor' if low[c] and q.floor else 'a bound'} "
+            where = "its floor" if low[c] and q.floor else "a bound"
+            notes.append(f"{_name(q, c)}: ended at {where} "
                          f"{bound:g}, so its interval is one-sided: the truth lies within "
                          f"{'+' if low[c] else '-'}{2 * error[c]:.3g} of it (two standard "
                          "errors, on the side away from the bound)")
@@ -563,10 +564,20 @@ def _short(v: np.ndarray) -> list[str]:
 
 def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str]
             ) -> dict[str, Estimate]:
-    """Estimates for a job's kept iterations (best, last), read from its Optimization. The
-    images are linearized at the last iteration, and again at the best only when it lies
-    further from it than two difference steps (over which J is taken as constant anyway);
-    the linearizations share the time J may take."""
+    """Estimates for a job's kept iterations (best, last), read from its Optimization; an
+    estimate that fails leaves the results as they are, with a note saying why."""
+    try:
+        return _of_kept(opt, chosen, kinds)
+    except Exception as exc:  # noqa: BLE001 - the job's results stand without them
+        note = f"standard errors: not estimated ({type(exc).__name__}: {exc})"
+        return {which: Estimate({}, {}, [note]) for which, _ in chosen}
+
+
+def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str]
+             ) -> dict[str, Estimate]:
+    """The images are linearized at the last iteration, and again at the best only when it
+    lies further from it than two difference steps (over which J is taken as constant
+    anyway); the linearizations share the time J may take."""
     kept = []
     for which, it in sorted(chosen, key=lambda c: c[0] != "last"):
         quantities, skipped = _quantities(opt, it, kinds)
