@@ -68,8 +68,8 @@ class Component:
 
     @property
     def z(self) -> float:
-        """(value - truth) / standard error; 0 where not determined (inf)."""
-        return (self.value - self.truth) / self.error if math.isfinite(self.error) else 0.0
+        """(value - truth) / standard error."""
+        return (self.value - self.truth) / self.error
 
     @property
     def covered(self) -> bool:
@@ -141,12 +141,14 @@ class Coverage:
 
 
 def coverage(components: list[Component]) -> dict[str, Coverage]:
-    """Per kind: how often the truth lay within two standard errors."""
+    """Per kind: how often the truth lay within two standard errors, over the components
+    that have one (those not determined are counted apart)."""
     out = {}
     for kind in dict.fromkeys(c.kind for c in components):
-        mine = [c for c in components if c.kind == kind]
-        z = np.array([c.z for c in mine if math.isfinite(c.error)])
+        mine = [c for c in components if c.kind == kind and math.isfinite(c.error)]
+        z = np.array([c.z for c in mine])
         out[kind] = Coverage(sum(c.covered for c in mine), len(mine),
                              float(np.sqrt(np.mean(z ** 2))) if z.size else math.nan,
-                             sum(not math.isfinite(c.error) for c in mine))
+                             sum(c.kind == kind and not math.isfinite(c.error)
+                                 for c in components))
     return out
