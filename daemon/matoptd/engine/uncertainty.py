@@ -46,6 +46,9 @@ from .optimize import Best, Optimization, rate_factor
 FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
 MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
 BUDGET = 0.1          # of the job's optimizing time, for J (its spp follows, down to 1)
+# ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
+# base of 120 s), which an hours-long job's 10% would pass.
+BUDGET_CAP = 60.0
 SIGNAL = 8.0          # J^T J's diagonal over its noise that a component's J should reach
 MAX_SAMPLES = 64      # times the job's spp: the most samples one component's J gets
 # Central-difference steps in latent coordinates: large enough that the paths a step
@@ -175,7 +178,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     began_one = time.perf_counter()
     _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
-    budget = BUDGET * job.seconds
+    budget = min(BUDGET * job.seconds, BUDGET_CAP)
     estimates = 2 * len(sensors) * sum(1 for c in comps if c.key)
     def cost(s: int) -> float:  # of one estimate at s spp (_samples)
         return 2 * (one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1))
