@@ -74,6 +74,12 @@ def test_components_the_images_cannot_tell_apart_are_not_determined():
     ok, inverse, _, groups = determined(h, spread)
     assert list(ok) == [False, False, True] and groups == [[0, 1]]
     assert inverse[2, 2] == pytest.approx(1 / (other @ other), rel=0.05)
+    # A component too noisy to tell, whose J runs along a determined one's (a light and a
+    # gain), takes that one with it: held at its value it would make the other look decided.
+    h = np.array([[0.1, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    spread = np.array([[0.5, 0.01, 0.01], [0.01, 0.01, 0.01], [0.01, 0.01, 0.01]])
+    ok, _, noisy, groups = determined(h, spread)
+    assert list(ok) == [False, False, True] and groups == [[0, 1]] and not noisy.any()
     # A component the render does not depend on at all is not determined either.
     zero = np.stack([other, np.zeros(400)], axis=1)
     ok, _, _, _ = determined(zero.T @ zero, np.zeros((2, 2)))

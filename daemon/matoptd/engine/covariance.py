@@ -46,6 +46,7 @@ NULL_WEIGHT = 0.05
 # How many noise levels of its estimate an eigenvalue of J^T J must exceed to count.
 NOISE_LEVELS = 3.0
 GAIN = 2.0  # the most a step's gain d H is taken to be (_bounded)
+COUPLED = 0.8  # |cosine| of two components' J beyond which they move the render as one
 
 
 @dataclass
@@ -95,7 +96,8 @@ def determined(hessian: np.ndarray, spread: np.ndarray
     the directions they share: components that change the render as one).
 
     A component whose J^T J is within NOISE_LEVELS standard errors of 0 (or below) is too
-    noisy to tell; it is left out, and the others' covariance holds it at its value. H over
+    noisy to tell; it is left out, and the others' covariance holds it at its value, unless
+    its J and another's are nearly parallel (COUPLED): then neither is determined. H over
     the rest is scaled to a unit diagonal; its eigenvalues within NOISE_LEVELS standard
     errors of 0 (or below) are directions these images do not decide, and a component with
     more than NULL_WEIGHT of itself in them is not determined."""
@@ -120,8 +122,21 @@ def determined(hessian: np.ndarray, spread: np.ndarray
     kept = vectors[:, ~null]
     inner = (kept / values[~null]) @ kept.T
     inverse[np.ix_(idx, idx)] = inner * np.outer(scale, scale)
-    for j in np.flatnonzero(null):  # merged where directions share a component
-        group = {int(idx[k]) for k in np.flatnonzero(vectors[:, j] ** 2 > NULL_WEIGHT)}
+    found = [{int(idx[k]) for k in np.flatnonzero(vectors[:, j] ** 2 > NULL_WEIGHT)}
+             for j in np.flatnonzero(null)]
+    # A component too noisy to tell that moves the render as a determined one does (a light
+    # whose radiance scales the image as a gain does) leaves that one's value undecided too:
+    # held at its value, the other would look determined when only their product is.
+    for k in np.flatnonzero(noisy):
+        cosine = np.abs(hessian[k, idx]) / np.sqrt(
+            np.maximum(diagonal[k], 1e-300) * diagonal[idx])
+        coupled = idx[(np.minimum(cosine, 1.0) > COUPLED)
+                      & (np.abs(hessian[k, idx]) > NOISE_LEVELS * spread[k, idx])]
+        if coupled.size:
+            ok[coupled] = False
+            noisy[k] = False
+            found.append({int(k), *map(int, coupled)})
+    for group in found:  # merged where they share a component
         for other in [g for g in groups if group & set(g)]:
             group |= set(other)
             groups.remove(other)
