@@ -39,7 +39,7 @@ from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
          "switching", "worker_restart", "two_workers", "geometry", "scheduling", "ray_cluster",
-         "thesis_tables", "real_scenes"]
+         "thesis_tables", "real_scenes", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 # Cases no longer run, and why: the summary says so, so that a reader of an older report
 # knows where its figures went.

@@ -171,11 +171,13 @@ def vol(grid, lo: float = -0.8, hi: float = 0.8) -> bytes:
             + struct.pack("<6f", lo, lo, lo, hi, hi, hi) + g.tobytes())
 
 
-def camera(res: int, origin: str = "0, 0, 4", fov: float = 30) -> str:
+def camera(res: int, origin: str = "0, 0, 4", fov: float = 30, height: int = 0) -> str:
+    """A perspective sensor looking at the origin, ``res`` px wide and ``height`` (or ``res``)
+    high, with a box filter."""
     return f"""<sensor type="perspective">
         <float name="fov" value="{fov}"/>
         <transform name="to_world"><lookat origin="{origin}" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/>
+        <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{height or res}"/>
             <rfilter type="box"/></film>
     </sensor>"""
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import re
 import struct
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ import numpy as np
 
 from matopt_client.client import (Client, download_blob, job_history, resource_name, short_float,
                            short_floats)
+from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
 WHICH = {"best": pb.WHICH_BEST, "last": pb.WHICH_LAST}
@@ -86,6 +88,19 @@ def _values(client: Client, values, directory: Path, suffix: str,
     return out, shapes
 
 
+def _estimated(result: pb.JobResult) -> dict[str, tuple[list, list, list[str]]]:
+    """(values, standard errors, intervals as "two_sided", "at_lower_bound", ...) of each
+    value and gain ("gain of <reference>") that has standard errors."""
+    out = {}
+    named = [(v.key, v.value, v) for v in result.parameters] + \
+        [(f"gain of {g.reference or f'sensor {g.sensor}'}", g.rgb, g) for g in result.gains]
+    for key, values, v in named:
+        if len(v.standard_error):
+            out[key] = (list(values), list(v.standard_error),
+                        [enums.short_name(pb.Interval, i).lower() for i in v.interval])
+    return out
+
+
 def export_job(client: Client, job_name: str, directory: str | Path, which: str = "best") -> Export:
     """Writes parameters.json, the initial/optimized/reference/error images, optimized
     textures, the optimized scene (``scene/``) and history.csv.
@@ -93,7 +108,9 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     ``parameters.json`` holds flat value lists (shapes apart, under "shapes"), and with
     fit_exposure the RGB gain of each reference (under "gains"); a parameter
     too large to travel inline is written as ``<key>.npy`` (``<key>_initial.npy`` for its
-    initial value) and named in the JSON instead of its values.
+    initial value) and named in the JSON instead of its values. Standard errors, per
+    component, are under "standard_errors" (null: not determined) with their "intervals",
+    and in ``parameters.csv`` (parameter, component, value, standard_error, interval).
     """
     name = resource_name("jobs", job_name)
     out = Path(directory)
@@ -116,9 +133,25 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     if result.gains:  # fit_exposure: render x gain ~ reference, per reference
         document["gains"] = {g.reference or f"sensor {g.sensor}": short_floats(g.rgb)
                              for g in result.gains}
+    estimated = _estimated(result)
+    if estimated:  # one standard error per component (null: not determined) and its reading
+        document["standard_errors"] = {k: [None if math.isinf(e) else short_float(e)
+                                           for e in errors] for k, (_, errors, _) in
+                                       estimated.items()}
+        document["intervals"] = {k: readings for k, (_, _, readings) in estimated.items()}
     path = out / "parameters.json"
     path.write_text(json.dumps(document, indent=2) + "\n")
     export.files.append(path)
+    if estimated:
+        path = out / "parameters.csv"
+        with open(path, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["parameter", "component", "value", "standard_error", "interval"])
+            for key, (values, errors, readings) in estimated.items():
+                for i, row in enumerate(zip(values, errors, readings)):
+                    writer.writerow([key, i, repr(short_float(row[0])),
+                                     repr(short_float(row[1])), row[2]])
+        export.files.append(path)
 
     export.files += download_images(client, result.images, out)
     # The optimized scene, laid out as its bundle under scene/: load scene/<scene_file>.

@@ -368,6 +368,25 @@ def floats(values: Iterable[float]) -> str:
     return ", ".join(f"{v:.4g}" for v in values)
 
 
+def estimated(values: Sequence[float], errors: Sequence[float] = (),
+              intervals: Sequence[int] = ()) -> str:
+    """``0.412 +- 0.003, 0 (at its bound, +0.02)``: values with their standard errors as the
+    result reads them (ParameterValue.interval); the values alone when there are none."""
+    if not len(errors):
+        return floats(values)
+    out = []
+    for v, e, interval in zip(values, errors, list(intervals) or [0] * len(values)):
+        if interval == pb.INTERVAL_NOT_DETERMINED or math.isinf(e):
+            out.append(f"{v:.4g} (not determined)")
+        elif interval == pb.INTERVAL_AT_LOWER_BOUND:
+            out.append(f"{v:.4g} (at its bound, +{e:.2g})")
+        elif interval == pb.INTERVAL_AT_UPPER_BOUND:
+            out.append(f"{v:.4g} (at its bound, -{e:.2g})")
+        else:
+            out.append(f"{v:.4g} +- {e:.2g}")
+    return ", ".join(out)
+
+
 def parameter_error(e: pb.ParameterError) -> str:
     """A ParameterError as people read it: RMSE, PSNR and, for textures and grids, the
     correlation with the truth per channel ("r 0.98/0.97/0.99")."""
@@ -386,4 +405,5 @@ def gain_reference(gain: pb.ReferenceGain) -> str:
 def gain_fields(gains: Iterable[pb.ReferenceGain]) -> dict[str, str]:
     """``{"gain of dim.exr": "0.6, 0.5, 0.4"}``: the RGB gain of each reference
     (JobSpec.fit_exposure), render x gain ~ reference."""
-    return {f"gain of {gain_reference(g)}": floats(g.rgb) for g in gains}
+    return {f"gain of {gain_reference(g)}": estimated(g.rgb, g.standard_error, g.interval)
+            for g in gains}

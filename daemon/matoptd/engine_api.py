@@ -200,6 +200,21 @@ class Progress:
     choices: list[ChoiceStatus] = field(default_factory=list)
 
 
+# How a component's standard error reads (engine/uncertainty.py): value +- error; at a bound
+# (or the floor a value is shown at) the interval is one-sided, away from it; not determined:
+# the images do not decide it (the error is +inf).
+READINGS = ("two_sided", "at_lower_bound", "at_upper_bound", "not_determined")
+
+
+@dataclass
+class StandardError:
+    """One standard error per component of a value (same order), and how to read each (one
+    of READINGS)."""
+
+    error: np.ndarray
+    reading: list[str]
+
+
 @dataclass
 class Result:
     """The parameters of one iteration (``which``: "best" or "last") with the renders they give,
@@ -215,6 +230,10 @@ class Result:
     scene_file: str                         # the optimized XML among them
     unplaced: list[str]                     # keys the XML could not be made to hold
     gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB (fit_exposure)
+    # Of the parameters up to a few dozen components in all (textures and grids: a note), and
+    # of the gains: how far each value may be from the truth.
+    standard_errors: dict[str, StandardError] = field(default_factory=dict)
+    gain_errors: dict[int, StandardError] = field(default_factory=dict)
 
 
 @dataclass

@@ -14,7 +14,7 @@ import copy
 import enum
 from dataclasses import dataclass, field, replace
 
-from .engine_api import ChoiceStatus, Counters, SensorInfo
+from .engine_api import ChoiceStatus, Counters, SensorInfo, StandardError
 from .settings import JobSettings, SceneInput, Values
 
 
@@ -110,6 +110,9 @@ class JobRecord:
     shapes: dict[str, list[int]] = field(default_factory=dict)
     worker: str = ""
     choices: list[ChoiceStatus] = field(default_factory=list)  # as the engine last reported
+    # Once it has ended with a result: its best result's small values, with their errors.
+    best_values: dict[str, Values] = field(default_factory=dict)
+    best_errors: dict[str, StandardError] = field(default_factory=dict)
     resumed_from: str = ""
     checkpoint: int | None = None  # the iteration its latest checkpoint continues from
     ending: Ending | None = None
@@ -161,3 +164,6 @@ class ResultRecord:
     scene_file: str          # the optimized XML's bundle path
     unplaced: list[str]      # keys the XML could not be made to hold
     gains: dict[int, list[float]] = field(default_factory=dict)  # sensor -> RGB
+    # How far each small value and gain may be from the truth (engine/uncertainty.py).
+    standard_errors: dict[str, StandardError] = field(default_factory=dict)
+    gain_errors: dict[int, StandardError] = field(default_factory=dict)

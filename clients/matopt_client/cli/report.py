@@ -58,6 +58,9 @@ class Series:
     job: str
     label: str
     rows: list[Row]
+    # key -> (seconds, relative standard error) of the best result, with ground truth: the
+    # error the images leave, drawn as an error bar on the parameter-error curve
+    standard_errors: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,7 +110,15 @@ def job_series(client: mc.Client, name: str, label: str | None = None) -> Series
     job = client.jobs.GetJob(pb.GetJobRequest(name=name))
     history = mc.job_history(client, name)
     truth = truth_of(job.spec)
-    return Series(job.name, label or default_label(job), [record_row(r, truth) for r in history])
+    at = next((r.seconds for r in history if r.iteration == job.best_iteration), None)
+    errors = {}
+    for p in job.best_parameters:
+        finite = [e for e in p.standard_error if math.isfinite(e)]
+        if at is not None and p.key in truth and finite and len(finite) == len(p.value):
+            errors[p.key] = (at, relative_error(finite, [0.0] * len(finite))
+                             / max(relative_error(truth[p.key], [0.0] * len(finite)), 1e-30))
+    return Series(job.name, label or default_label(job), [record_row(r, truth) for r in history],
+                  errors)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -204,7 +215,8 @@ def plot_loss(series: Sequence[Series], path: Path, title: str = "loss against t
 
 def plot_errors(series: Sequence[Series], path: Path,
                 title: str = "parameter error against time") -> Path:
-    """One curve per parameter and run: colour by parameter, line style by run."""
+    """One curve per parameter and run: colour by parameter, line style by run; an error bar
+    at the best result where it has standard errors (the relative error the images leave)."""
     plt = pyplot()
     fig, ax = _figure(plt, title, "relative error (log)")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -215,6 +227,11 @@ def plot_errors(series: Sequence[Series], path: Path,
                 ax.plot(*_positive([r.seconds for r in rows], [r.errors[key] for r in rows]),
                         color=colours[k % len(colours)], linestyle=LINESTYLES[n % len(LINESTYLES)],
                         label=f"{s.label}: {key}")
+            at = s.standard_errors.get(key)
+            best = next((r.errors[key] for r in rows if r.seconds == at[0]), None) if at else None
+            if best and best > 0:  # the best result's relative standard error, about it
+                ax.errorbar([at[0]], [best], yerr=[[min(at[1], 0.9 * best)], [at[1]]],
+                            color=colours[k % len(colours)], capsize=3)
     return _save(plt, fig, ax, path)
 
 

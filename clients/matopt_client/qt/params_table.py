@@ -22,7 +22,7 @@ from PySide6.QtGui import QBrush, QColor, QIcon, QPixmap
 from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLabel, QLineEdit,
                                QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from matopt_client import client as mc
+from matopt_client import client as mc, workflow
 from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 
@@ -278,7 +278,8 @@ class ParamsTable(QWidget):
     # -- values of the iteration or result being shown -----------------------------------------
 
     def show_current(self, values: Iterable[pb.ParameterValue]) -> None:
-        """Fills the "Current" column: the iterate being optimized, or a result's values."""
+        """Fills the "Current" column: the iterate being optimized, or a result's values
+        with their standard errors (0.41 +- 0.003)."""
         self._filling = True
         try:
             index = {row.parameter.key: i for i, row in enumerate(self.rows)}
@@ -287,7 +288,9 @@ class ParamsTable(QWidget):
                 if i is None:
                     continue
                 item = self.table.item(i, CURRENT)
-                item.setText(format_values(v.value) if v.value else "(large: see export)")
+                item.setText("(large: see export)" if not v.value else
+                             workflow.estimated(v.value, v.standard_error, v.interval)
+                             if len(v.standard_error) else format_values(v.value))
                 if self.rows[i].parameter.kind == pb.PARAMETER_KIND_RGB and len(v.value) >= 3:
                     item.setIcon(swatch(v.value))
         finally:

@@ -30,13 +30,17 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
              nonfinite_steps: int, skipped_steps: int,
              trajectories: dict[str, np.ndarray] | None = None,
              truth_errors: dict[str, list[float]] | None = None,
-             gradients: dict[str, list[np.ndarray]] | None = None) -> list[str]:
+             gradients: dict[str, list[np.ndarray]] | None = None,
+             traded: set[frozenset[str]] = frozenset(),
+             undetermined: set[str] = frozenset()) -> list[str]:
     """``trajectories``: per parameter, its value at each iteration (iterations x components),
     for the parameters small enough to be recorded inline, and the mean over components for
     the others (textures, grids). ``truth_errors``: per parameter with a ground truth, its
     relative error at each iteration. ``gradients``: per small parameter, the gradient of
-    each step (the latest last)."""
-    notes = undecided(losses, trajectories or {}, truth_errors or {})
+    each step (the latest last). ``traded`` and ``undetermined``: the pairs and parameters
+    the standard errors already name (engine/uncertainty.py), whose notes from the history
+    would say less."""
+    notes = undecided(losses, trajectories or {}, truth_errors or {}, traded, undetermined)
     for key, s in settings.items():
         v = values.get(key)
         if v is None:
@@ -101,9 +105,13 @@ def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
 
 
 def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
-              truth_errors: dict[str, list[float]]) -> list[str]:
+              truth_errors: dict[str, list[float]],
+              traded: set[frozenset[str]] = frozenset(),
+              undetermined: set[str] = frozenset()) -> list[str]:
     """Where the images do not decide: a parameter that moves away from a given truth while
-    the render keeps matching, and pairs of parameters that trade off."""
+    the render keeps matching, and pairs of parameters that trade off (unless the standard
+    errors' correlations name them: ``traded``), and parameters that never moved (unless
+    found not determined)."""
     notes = []
     for key, first, best, last in drifts_from_truth(losses, truth_errors):
         notes.append(f"{key}: the render matches the references as well as it did, but the "
@@ -111,11 +119,15 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
                      f"{last:.3g} (started at {first:.3g}): these images do not decide it; what "
                      f"would: {DECIDER}")
     for a, b, r in trade_offs(losses, trajectories):
+        if frozenset((a, b)) in traded:
+            continue
         how = "rises as the other falls" if r < 0 else "moves with the other"
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
                      f"{r:+.2f}) while the loss stays level, so the images do not tell them "
                      f"apart; what would decide them: {DECIDERS}")
     for key in unmoved(trajectories, losses):
+        if key in undetermined:
+            continue
         notes.append(f"{key} hardly moved while the loss fell: the images carry no gradient "
                      "for it (light that would show it may never reach the camera, e.g. "
                      "transmission at a small max_depth); what would decide it: a deeper "

@@ -146,8 +146,9 @@ class Optimization:
         self.images: dict[int, list] = {}
         self.frozen: set[str] = set()
         self._pending: list[tuple[str, mi.Float]] = []  # guard counts not yet read
-        # per step, the gradient each small parameter stepped on (in its variable's space),
-        # read with the next theta: whether the images steered a drift (diagnosis)
+        # per step, the gradient each small parameter and gain stepped on (latent), read
+        # with the next theta: whether the images steered a drift (diagnosis), how noisy
+        # the steps were (uncertainty)
         self.gradients: dict[str, list[np.ndarray]] = {}
         self._stepped: list[dict[str, object]] = []
 
@@ -294,14 +295,14 @@ class Optimization:
         self.elapsed += time.perf_counter() - start
         out = Step(i, loss, theta, last or reached,
                    "min_error" if reached else "iterations" if last else "",
-                   {k: parameter_error(theta[k], t, self._channels(k))
+                   {k: parameter_error(theta[k], t, self.channels(k))
                     for k, t in self.truth.items() if k in theta},
                    gains=gains)
         if s.image_error_every and (i % s.image_error_every == 0 or out.done):
             out.image_error = self.image_error(theta, gains)  # off the clock
         return out
 
-    def _channels(self, key: str) -> int:
+    def channels(self, key: str) -> int:
         """A texture's or grid's channel count (its errors are per channel); 0 otherwise."""
         value = self.params[key]
         return int(value.shape[-1]) if dr.is_tensor_v(value) else 0
@@ -353,7 +354,7 @@ class Optimization:
         self.frozen.clear()
         self._call("on_gradient", i, sensors)
         self._sanitize_gradients()
-        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.parameters
+        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.rates
                               if dr.width(self.opt[k]) <= SMALL})
         self.opt.step()
         self._call("after_step", i)

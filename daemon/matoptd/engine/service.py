@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import choices, diagnosis, images, parameters, scene as scenes, scene_export
+from . import choices, diagnosis, images, parameters, scene as scenes, scene_export, uncertainty
 from .integrator import medium_notes
 from .optimize import Best, CheckpointError, Optimization, Reference
 
@@ -246,6 +246,10 @@ class MitsubaEngine:
         opt = run.opt
         results = _results(run, _chosen(opt), render)
         opt.flush()
+        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds)
+        for r in results:
+            r.standard_errors, r.gain_errors = estimates[r.which].errors, estimates[r.which].gains
+        shown = estimates.get("best") or estimates.get("last") or uncertainty.Estimate({}, {}, [])
         paths: dict[str, list[list[float]]] = {}
         errors: dict[str, list[float]] = {}
         for record in history:
@@ -262,8 +266,9 @@ class MitsubaEngine:
         notes = diagnosis.diagnose(
             opt.kept, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
             opt.skipped_steps, trajectories,
-            {k: e for k, e in errors.items() if len(e) == len(history)}, opt.gradients)
-        return api.Finished(results, notes, _counters(opt))
+            {k: e for k, e in errors.items() if len(e) == len(history)}, opt.gradients,
+            shown.traded, shown.undetermined)
+        return api.Finished(results, notes + shown.notes, _counters(opt))
 
     def release(self, job: str) -> None:
         """Drops the job's run and returns the memory it held: Dr.Jit keeps freed buffers in

@@ -300,10 +300,12 @@ class Lane:
         finished = engine.finish(record.name, self.store.history(record.name), cancelled,
                                  False)
         scene = self.store.get_scene(record.owner, record.scene)
-        for result in finished.results:
-            self.store.put_result(keep_result(record.name, result, record.shapes, scene,
-                                              ending.images.get(result.which, []),
-                                              self._put(record)))
+        kept = [keep_result(record.name, result, record.shapes, scene,
+                            ending.images.get(result.which, []), self._put(record))
+                for result in finished.results]
+        for result in kept:
+            self.store.put_result(result)
+        best = next((r for r in kept if r.which == "best"), None)
         engine.release(record.name)
         with self.state.lock:
             if cancelled:
@@ -313,6 +315,9 @@ class Lane:
             if not cancelled:
                 record.notes.append(stop_note(ending.reason, record))
             record.counters = finished.counters
+            if best is not None:  # GetJob shows them, with their standard errors
+                record.best_values = {k: v for k, v in best.values.items() if not v.sha256}
+                record.best_errors = best.standard_errors
             self.scheduler.done(action)  # the job is its outcome now
             self.state.save(record)
             self.state.wake.notify_all()

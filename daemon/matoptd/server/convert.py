@@ -43,10 +43,22 @@ def blob(sha256: str) -> str:
 
 # -- values ----------------------------------------------------------------------------------
 
-def values_to_pb(values: dict[str, Values], shapes: dict[str, list[int]]
+def values_to_pb(values: dict[str, Values], shapes: dict[str, list[int]],
+                 errors: dict[str, api.StandardError] | None = None
                  ) -> list[pb.ParameterValue]:
+    """With their standard errors where ``errors`` has them."""
     return [pb.ParameterValue(key=key, value=v.inline, shape=shapes.get(key, []),
-                              blob=blob(v.sha256)) for key, v in values.items()]
+                              blob=blob(v.sha256), **standard_error(errors, key))
+            for key, v in values.items()]
+
+
+def standard_error(errors: dict | None, key) -> dict:
+    """The standard_error and interval fields of a value or gain (none without one)."""
+    e = (errors or {}).get(key)
+    if e is None:
+        return {}
+    return {"standard_error": np.asarray(e.error, dtype=np.float32).ravel().tolist(),
+            "interval": [enums.parse(pb.Interval, r) for r in e.reading]}
 
 
 def arrays_to_pb(values: dict[str, np.ndarray], shapes: dict[str, list[int]]
@@ -165,7 +177,8 @@ def job_to_pb(job: JobRecord) -> pb.Job:
         choices=[pb.Choice(name=x.name, on=x.on, why=x.why,
                            seconds_per_iteration=x.seconds_per_iteration,
                            setup_seconds=x.setup_seconds, switchable=x.switchable)
-                 for x in job.choices])
+                 for x in job.choices],
+        best_parameters=values_to_pb(job.best_values, job.shapes, job.best_errors))
 
 
 def reference_names(job: JobRecord) -> dict[int, str]:
@@ -173,10 +186,12 @@ def reference_names(job: JobRecord) -> dict[int, str]:
     return {r.sensor: r.name for r in job.settings.references}
 
 
-def gains_to_pb(gains: dict[int, np.ndarray] | dict[int, list[float]], names: dict[int, str]
+def gains_to_pb(gains: dict[int, np.ndarray] | dict[int, list[float]], names: dict[int, str],
+                errors: dict[int, api.StandardError] | None = None
                 ) -> list[pb.ReferenceGain]:
     return [pb.ReferenceGain(sensor=s, reference=names.get(s, ""),
-                             rgb=np.asarray(g, dtype=np.float32).ravel().tolist())
+                             rgb=np.asarray(g, dtype=np.float32).ravel().tolist(),
+                             **standard_error(errors, s))
             for s, g in sorted(gains.items())]
 
 
@@ -196,12 +211,12 @@ def iteration_to_pb(r: api.IterationRecord, job: JobRecord) -> pb.IterationRecor
 def result_to_pb(r: ResultRecord, job: JobRecord) -> pb.JobResult:
     return pb.JobResult(
         job=r.job, which=enums.parse(pb.Which, r.which), iteration=r.iteration, loss=r.loss,
-        parameters=values_to_pb(r.values, r.shapes),
+        parameters=values_to_pb(r.values, r.shapes, r.standard_errors),
         initial_parameters=values_to_pb(r.initial, r.shapes),
         images=[image_to_pb(i) for i in r.images],
         scene_files=[pb.BundleFile(path=f.path, sha256=f.sha256) for f in r.scene_files],
         scene_file=r.scene_file, unplaced_parameters=r.unplaced,
-        gains=gains_to_pb(r.gains, reference_names(job)))
+        gains=gains_to_pb(r.gains, reference_names(job), r.gain_errors))
 
 
 def event_to_pb(event: JobRecord | api.IterationRecord, job: JobRecord) -> pb.JobEvent:

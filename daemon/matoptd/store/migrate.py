@@ -24,7 +24,8 @@ import numpy as np
 from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 
-from ..engine_api import Counters, IterationRecord, ParameterInfo, SensorInfo
+from ..engine_api import (ChoiceStatus, Counters, IterationRecord, ParameterInfo, SensorInfo,
+                          StandardError)
 from ..records import (BundleFile, ImageRef, JobRecord, Phase, ResultRecord, SceneRecord,
                        RESUME_PENDING)
 from ..settings import JobSettings, ParameterSetting, ReferenceInput, SceneInput, Values
@@ -153,6 +154,13 @@ def _values(inline, blob: str) -> Values | None:
     return Values(list(inline)) if len(inline) else None
 
 
+def _standard_errors(values, key=lambda v: v.key) -> dict:
+    """The standard errors of values (or gains) that carry them."""
+    return {key(v): StandardError(np.asarray(v.standard_error, dtype=np.float32),
+                                  [enums.short_name(pb.Interval, i).lower() for i in v.interval])
+            for v in values if len(v.standard_error)}
+
+
 def _name(enum, value: int, default: str) -> str:
     return enums.short_name(enum, value).lower() if value else default
 
@@ -200,7 +208,7 @@ def job_settings(spec: pb.JobSpec, scene: SceneInput) -> JobSettings:
         truth={k: v for k, v in truth.items() if v is not None},
         image_error_every=spec.image_error_every,
         image_error_spp=spec.image_error_spp or defaults.image_error_spp,
-        fit_exposure=spec.fit_exposure)
+        fit_exposure=spec.fit_exposure, choices=dict(spec.choices))
 
 
 def job_record(job: pb.Job, owner: str, scene: SceneRecord | None,
@@ -223,7 +231,11 @@ def job_record(job: pb.Job, owner: str, scene: SceneRecord | None,
         shapes={p.key: shapes.get(p.key, []) for p in job.spec.parameters},
         worker=job.worker, resumed_from=job.resumed_from, error=job.error,
         stop_reason=job.stop_reason,
-        notes=[n for n in job.notes if not n.startswith(_END_PHASE)])
+        notes=[n for n in job.notes if not n.startswith(_END_PHASE)],
+        choices=[ChoiceStatus(c.name, c.on, c.why, c.seconds_per_iteration, c.setup_seconds,
+                              c.switchable) for c in job.choices],
+        best_values={v.key: Values(list(v.value)) for v in job.best_parameters},
+        best_errors=_standard_errors(job.best_parameters))
     if not loadable and not phase.final:
         record.phase, record.stop_reason = Phase.FAILED, "failed"
         record.error = (f"its scene '{job.spec.scene}' cannot be loaded any more (it was made "
@@ -258,4 +270,6 @@ def result_record(r: pb.JobResult) -> ResultRecord:
         images=[_image(i) for i in r.images],
         scene_files=[BundleFile(f.path, f.sha256) for f in r.scene_files],
         scene_file=r.scene_file, unplaced=list(r.unplaced_parameters),
+        standard_errors=_standard_errors(r.parameters),
+        gain_errors=_standard_errors(r.gains, key=lambda g: g.sensor),
         gains={g.sensor: list(g.rgb) for g in r.gains})

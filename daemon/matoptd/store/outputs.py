@@ -48,4 +48,5 @@ def keep_result(job: str, result: api.Result, shapes: dict[str, list[int]],
         scene_file=f"{base}/{result.scene_file}" if base else result.scene_file,
         unplaced=list(result.unplaced),
         gains={s: np.asarray(g, dtype=np.float32).ravel().tolist()
-               for s, g in sorted(result.gains.items())})
+               for s, g in sorted(result.gains.items())},
+        standard_errors=dict(result.standard_errors), gain_errors=dict(result.gain_errors))
