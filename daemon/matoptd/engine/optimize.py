@@ -29,6 +29,10 @@ Guards (Dr.Jit 1.5's dr.clip propagates NaN, and Adam has no NaN guard of its ow
 The guards never wait for the device: their counts are symbolic sums, evaluated with the next
 iteration's parameter values in one launch. The plain loop syncs once per iteration (reading
 the loss); so does this one, and Python traces the next render while the backward pass runs.
+
+``Optimization`` runs past 300 lines and this module past 500 on purpose: the loop and the
+state every choice hooks into read best in one place, as Mitsuba's ``common.py`` keeps its
+one loop; the special cases themselves are in ``choices/``.
 """
 
 from __future__ import annotations

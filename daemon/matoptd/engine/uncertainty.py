@@ -25,6 +25,9 @@ pyramid, carried exactly by its (linear) pyramid operator; ``brightness_independ
 least squares on images divided by their means, linearized. ``mae`` is not least squares: its
 estimate is that of the least-squares fit to one render (the L2 approximation), which a note
 says.
+
+Over 500 lines: estimating J (``linearize``) and reading the estimate from it (``estimate``)
+share the component and image layouts declared here; the algebra is in ``covariance.py``.
 """
 
 from __future__ import annotations

@@ -48,7 +48,11 @@ def stop_note(reason: str, job: JobRecord) -> str:
 
 
 class Lane:
-    """One worker's lane. ``run`` is its thread; ``turn`` is one decision, carried out."""
+    """One worker's lane. ``run`` is its thread; ``turn`` is one decision, carried out.
+
+    Just over 300 lines: one method per action kind (load, step, evict, end, finish, task),
+    each a few lines of record-keeping around one engine call; split, they would pass the
+    record and the action back and forth."""
 
     def __init__(self, state: State, worker: Handle, watchdog: float, recovery: Recovery
                  ) -> None:
