@@ -86,7 +86,9 @@ def wait_states(clients: dict[str, mc.Client], names: dict[str, str], states,
         if all(jobs[n].state in states for n in names):
             return
         if time.monotonic() > deadline:
-            raise RuntimeError(f"jobs did not reach {states} in {timeout:g} s")
+            late = {n: pb.JobState.Name(jobs[n].state) for n in names
+                    if jobs[n].state not in states}
+            raise RuntimeError(f"jobs did not reach {states} in {timeout:g} s: {late}")
         time.sleep(0.1)
 
 
