@@ -21,6 +21,9 @@ from test_faults import WALLS, cornell_job, two_users, wait_worker, worker  # no
 
 from test_image_headers import png_header_only
 
+# Every message these tests receive is scanned for the daemon's own paths.
+pytestmark = pytest.mark.usefixtures("no_server_paths")
+
 # 32x32 px at 65536 spp: 2^26 samples, just within the default limit of a render call; one
 # iteration (render and gradient) takes minutes on CPU cores, however many. Memory stays
 # small: Mitsuba traces the samples in one kernel, without arrays of their size.

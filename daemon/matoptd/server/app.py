@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from pathlib import Path
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -31,13 +32,19 @@ MAX_MESSAGE = 64 << 20
 SERVICES = ("BlobService", "SceneService", "JobService", "ServerService")
 
 
+def hidden(data_dir: Path) -> dict[str, str]:
+    """The data directory, as written and as resolved, and what a message says instead."""
+    return {str(p): "<data dir>" for p in {Path(data_dir), Path(data_dir).absolute(),
+                                           Path(data_dir).resolve()}}
+
+
 def build(backend: Backend, auth: Authenticator) -> tuple[grpc.aio.Server,
                                                           health.aio.HealthServicer, list[str]]:
     """The server with every service added; returns it, its health servicer and the names
     health reports on ("" for the whole server)."""
     names = [pb.DESCRIPTOR.services_by_name[n].full_name for n in SERVICES]
     server = grpc.aio.server(
-        interceptors=[Authentication(auth, names), Errors(names)],
+        interceptors=[Authentication(auth, names), Errors(names, hidden(backend.store.root))],
         options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                  ("grpc.max_send_message_length", MAX_MESSAGE)])
     rpc.add_BlobServiceServicer_to_server(BlobService(backend), server)

@@ -120,10 +120,13 @@ async def _refuse_stream(request: Any, context: grpc.aio.ServicerContext
 
 class Errors(grpc.aio.ServerInterceptor):
     """Checks each request's fields (``fields.check``) and answers the daemon's errors with
-    their status codes, around every handler of ``services``."""
+    their status codes, around every handler of ``services``. ``hidden``: the daemon's own
+    paths (its data directory) and the words that stand for them in a message: no answer
+    shows a caller where the daemon keeps anything."""
 
-    def __init__(self, services: list[str]) -> None:
+    def __init__(self, services: list[str], hidden: dict[str, str] | None = None) -> None:
         self.services = frozenset(services)
+        self.hidden = hidden or {}
 
     async def intercept_service(self, continuation: Continuation,
                                 details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler:
@@ -134,16 +137,17 @@ class Errors(grpc.aio.ServerInterceptor):
             inner_stream = handler.unary_stream
 
             async def stream(request, context):
-                await _guard(context, lambda: _check(request))
+                await _guard(context, lambda: _check(request), self.hidden)
                 responses = inner_stream(request, context).__aiter__()
-                while (item := await _guard(context, lambda: _next(responses))) is not _END:
+                while (item := await _guard(context, lambda: _next(responses),
+                                            self.hidden)) is not _END:
                     yield item
             return _wrapped(handler, None, stream)
         inner = handler.unary_unary or handler.stream_unary
 
         async def unary(request, context):
-            await _guard(context, lambda: _check(request))
-            return await _guard(context, lambda: inner(request, context))
+            await _guard(context, lambda: _check(request), self.hidden)
+            return await _guard(context, lambda: inner(request, context), self.hidden)
         return _wrapped(handler, unary, None)
 
 
@@ -162,19 +166,28 @@ async def _next(responses: AsyncIterator[Any]) -> Any:
         return _END
 
 
-async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[Any]]) -> Any:
+async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[Any]],
+                 hidden: dict[str, str]) -> Any:
     """Runs one step of a handler, turning the daemon's errors into statuses."""
     try:
         return await fn()
     except UserError as exc:
         kind, message, trailers = status(exc, _attempts(context))
-        await context.abort(kind, message, trailers)
+        await context.abort(kind, hide(message, hidden), trailers)
     except (grpc.aio.AbortError, asyncio.CancelledError):
         raise
     except Exception as exc:  # noqa: BLE001 - one bad request must not take others down
         log.exception("internal error")
         await context.abort(grpc.StatusCode.INTERNAL,
-                            f"internal error: {type(exc).__name__}: {exc}")
+                            hide(f"internal error: {type(exc).__name__}: {exc}", hidden))
+
+
+def hide(message: str, hidden: dict[str, str]) -> str:
+    """``message`` with each hidden path (longest first: a folder inside another) replaced by
+    the words that stand for it."""
+    for path in sorted(hidden, key=len, reverse=True):
+        message = message.replace(path, hidden[path])
+    return message
 
 
 def _attempts(context: grpc.aio.ServicerContext) -> int:
