@@ -2,7 +2,7 @@
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
             [--devices 0,1 | --workers N] [--ray ADDRESS] [--server-cores N]
-            [--worker-memory SIZE]
+            [--server-nice N] [--worker-memory SIZE]
             [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
             [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
             [--max-reference-pixels N] [--max-reference-memory SIZE]
@@ -10,7 +10,7 @@
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
 MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_RAY,
-MATOPTD_SERVER_CORES,
+MATOPTD_SERVER_CORES, MATOPTD_SERVER_NICE,
 MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
 MATOPTD_MAX_SAMPLES etc. for the limits).
 
@@ -50,6 +50,8 @@ from .workers import devices
 from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
+
+SERVER_NICE = 10  # nice levels of the server's threads below the workers': rendering goes first
 
 # The admission limits (admission.Limits): what one request or one user may ask of the shared
 # workers. Sizes take suffixes (4G, 512M).
@@ -98,6 +100,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
                         "status traffic never competes with rendering (default: all shared)")
+    p.add_argument("--server-nice", type=int,
+                   default=int(env("MATOPTD_SERVER_NICE", str(SERVER_NICE))),
+                   help="nice levels the server's threads (gRPC, the API's handlers) run "
+                        "below the workers, so that on cores they share rendering goes first; "
+                        "0 leaves them as started (default %(default)s)")
     p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
                    help="resident memory a worker may use before it is stopped and its job "
                         "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
@@ -177,6 +184,8 @@ async def serve(args: argparse.Namespace) -> None:
     else:
         lanes = await asyncio.to_thread(start_workers, args, store)
 
+    if args.server_nice > 0:
+        devices.lower_priority(args.server_nice, lanes.thread_ids())
     backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
     server, health_servicer, names = app.build(backend, Authenticator(tokens))

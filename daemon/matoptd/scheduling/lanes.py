@@ -437,6 +437,10 @@ class Lanes:
         thread.start()
         return started
 
+    def thread_ids(self) -> set[int]:
+        """The lanes' threads (the OS's ids): they start the worker processes."""
+        return {t.native_id for t in self._threads if t.native_id is not None}
+
     @property
     def ready(self) -> bool:
         return any(w.state in ("idle", "busy") for w in self.state.workers.values())

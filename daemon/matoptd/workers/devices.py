@@ -70,6 +70,28 @@ def reserve_cores(n: int) -> list[int]:
     return cores[n:]
 
 
+def lower_priority(by: int, keep: set[int]) -> int:
+    """Lowers every thread of this process but ``keep`` by ``by`` nice levels (to at most 19)
+    and returns how many it lowered. The server's threads (gRPC, handlers) then give way to
+    the render threads on cores they share, so status traffic takes its CPU from the server
+    rather than from the jobs. ``keep``: the lanes' threads, which start the worker processes
+    (a process starts with the nice value of the thread that forked it, and an unprivileged
+    one cannot lower it back). Threads started later by a lowered one inherit its value."""
+    lowered = 0
+    for task in os.listdir("/proc/self/task"):
+        tid = int(task)
+        if tid in keep:
+            continue
+        try:
+            now = os.getpriority(os.PRIO_PROCESS, tid)
+            if now < 19:
+                os.setpriority(os.PRIO_PROCESS, tid, min(19, now + by))
+                lowered += 1
+        except (ProcessLookupError, PermissionError):
+            pass  # a thread that ended meanwhile
+    return lowered
+
+
 def placements(devices: list[str] | None, workers: int | None, variant: str | None,
                cores: list[int] | None = None) -> list[Placement]:
     """One worker per CUDA device (``devices``, else every one nvidia-smi lists or
