@@ -1,7 +1,8 @@
 """``matoptd``: start the daemon.
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
-            [--devices 0,1 | --workers N] [--ray ADDRESS] [--server-cores N]
+            [--devices 0,1 | --workers N] [--workers-per-device auto|N] [--ray ADDRESS]
+            [--server-cores N]
             [--server-nice N] [--worker-memory SIZE]
             [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
             [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
@@ -9,7 +10,8 @@
             [--max-jobs-per-user N] [--max-tasks-per-user N]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_RAY,
+MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS,
+MATOPTD_WORKERS_PER_DEVICE, MATOPTD_RAY,
 MATOPTD_SERVER_CORES, MATOPTD_SERVER_NICE,
 MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
 MATOPTD_MAX_SAMPLES etc. for the limits).
@@ -46,7 +48,7 @@ from .server import admission, app
 from .server.backend import Backend
 from .server.auth import Authenticator, load_tokens
 from .store.store import Store
-from .workers import devices
+from .workers import devices, sizing
 from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
@@ -96,6 +98,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "private Ray instance on this machine; one worker per GPU of the cluster, or "
                         "with --workers N (or no GPU in the cluster at start) N CPU workers per "
                         "machine (needs matopt-mitsuba[daemon,ray])")
+    p.add_argument("--workers-per-device", default=env("MATOPTD_WORKERS_PER_DEVICE", "auto"),
+                   metavar="auto|N",
+                   help="worker processes sharing each CUDA device: 'auto' as many as its free "
+                        "memory holds for jobs up to --max-samples (at most 8), or N; on a "
+                        "CPU-only host N workers that each render on all cores ('auto': one, "
+                        "or --workers) (default %(default)s)")
     p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
@@ -243,7 +251,14 @@ def start_workers(args: argparse.Namespace, store: Store) -> Lanes:
     chosen = [d.strip() for d in args.devices.split(",")] if args.devices else None
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
-    places = devices.placements(chosen, args.workers, args.variant, args.worker_cores)
+    try:
+        per_device = sizing.parse(args.workers_per_device)
+    except ValueError as exc:
+        raise SystemExit(f"matoptd: --workers-per-device: {exc}")
+    places = devices.placements(chosen, args.workers, args.variant, args.worker_cores,
+                                per_device, args.max_samples)
+    for why in dict.fromkeys(p.sizing for p in places if p.sizing):
+        log.info("workers: %s", why)
     lanes, failures = _run(args, store, places)
     if not lanes.ready and places[0].cuda is not None and chosen is None \
             and args.variant is None:

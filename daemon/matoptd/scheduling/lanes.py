@@ -385,6 +385,7 @@ class WorkerStatus:
     memory_limit: int
     threads: int
     node: str = ""
+    sizing: str = ""  # how many workers share its device, and why
 
 
 class Lanes:
@@ -493,5 +494,6 @@ class Lanes:
                     w.name, w.state, w.info.get("variant", ""),
                     w.info.get("device", w.placement.describe()), w.info.get("host", ""),
                     w.pid, mine, len(loaded), w.restarts, w.last_exit, w.memory(),
-                    w.memory_limit, w.info.get("threads", w.placement.threads), w.node))
+                    w.memory_limit, w.info.get("threads", w.placement.threads), w.node,
+                    w.placement.sizing))
         return out
