@@ -14,7 +14,6 @@ import threading
 
 import grpc
 import pytest
-from google.protobuf import empty_pb2
 from google.rpc import error_details_pb2
 from grpc_status import rpc_status
 
@@ -31,20 +30,20 @@ from scenes import write_mesh_scene
 KEY = "shape_0.bsdf.reflectance.value"
 
 
-class Refusing(rpc.ServerServiceServicer):
-    """GetServerInfo refused ``refusals`` times with ``error``, then answered."""
+class Refusing(rpc.JobServiceServicer):
+    """GetJob refused ``refusals`` times with ``error``, then answered."""
 
     def __init__(self) -> None:
         self.calls, self.refusals, self.error = 0, 0, None
         self.attempts: list[str] = []  # grpc-previous-rpc-attempts of each call
 
-    async def GetServerInfo(self, request, context):
+    async def GetJob(self, request, context):
         self.calls += 1
         self.attempts.append(dict(context.invocation_metadata()).get(
             "grpc-previous-rpc-attempts", ""))
         if self.calls <= self.refusals:
             raise self.error
-        return pb.ServerInfo(version="ok")
+        return pb.Job(name="jobs/ok")
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +55,8 @@ def server():
     holder = {}
 
     async def serve():
-        s = grpc.aio.server(interceptors=[Errors(["matopt.v1.ServerService"])])
-        rpc.add_ServerServiceServicer_to_server(servicer, s)
+        s = grpc.aio.server(interceptors=[Errors(["matopt.v1.JobService"])])
+        rpc.add_JobServiceServicer_to_server(servicer, s)
         holder["port"] = s.add_insecure_port("127.0.0.1:0")
         await s.start()
         holder["server"] = s
@@ -77,7 +76,7 @@ def ask(address: str, servicer: Refusing, error: Exception, refusals: int):
     servicer.attempts = []
     client = connect(address, probe_timeout=None)
     try:
-        return client.server.GetServerInfo(pb.GetServerInfoRequest(), timeout=30)
+        return client.jobs.GetJob(pb.GetJobRequest(name="jobs/ok"), timeout=30)
     finally:
         client.close()
 
@@ -85,7 +84,7 @@ def ask(address: str, servicer: Refusing, error: Exception, refusals: int):
 def test_a_limit_that_lifts_is_retried_after_the_delay_it_names(server):
     address, servicer = server
     answer = ask(address, servicer, Busy("too many requests in progress", 0.05), 3)
-    assert answer.version == "ok" and servicer.calls == 4
+    assert answer.name == "jobs/ok" and servicer.calls == 4
     assert servicer.attempts == ["", "1", "2", "3"]  # the daemon doubles its delay with each
 
 
@@ -104,7 +103,7 @@ def test_the_temporary_refusal_carries_retry_info(server):
     servicer.error = Busy("too many requests in progress", 1.5)
     with grpc.insecure_channel(address) as channel:  # no retry policy: the refusal itself
         with pytest.raises(grpc.RpcError) as err:
-            rpc.ServerServiceStub(channel).GetServerInfo(pb.GetServerInfoRequest(), timeout=10)
+            rpc.JobServiceStub(channel).GetJob(pb.GetJobRequest(name="jobs/ok"), timeout=10)
     status = rpc_status.from_call(err.value)
     assert status.code == grpc.StatusCode.RESOURCE_EXHAUSTED.value[0]
     info = error_details_pb2.RetryInfo()

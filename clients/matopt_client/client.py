@@ -39,6 +39,8 @@ PROBE_TIMEOUT_S = 5.0  # the first call: long enough for a remote daemon, short 
 # an exponential backoff, at most 5 attempts in all (gRPC's cap). A limit that retrying does
 # not lift comes with a pushback of -1 and is not retried. Streams of blob chunks are retried
 # only while they fit gRPC's retry buffer (256 KiB), the first chunk of an upload included.
+# ServerService is left out: GetServerInfo meets no limit, and the first call of a connection
+# (``probe``) should say at once that no daemon answers at an address.
 RETRY_POLICY = {
     "maxAttempts": 5,
     "initialBackoff": "0.2s",
@@ -48,7 +50,7 @@ RETRY_POLICY = {
 }
 SERVICE_CONFIG = json.dumps({"methodConfig": [{
     "name": [{"service": f"matopt.v1.{s}"} for s in
-             ("BlobService", "SceneService", "JobService", "ServerService")],
+             ("BlobService", "SceneService", "JobService")],
     "retryPolicy": RETRY_POLICY}]})
 
 # States after which a job changes no more (INTERRUPTED may still be resumed, but no longer runs).

@@ -36,9 +36,10 @@ const log = (...parts) => console.error(...parts);
 // (RESOURCE_EXHAUSTED: too many of one's requests in progress, the daemon names the delay in
 // grpc-retry-pushback-ms and google.rpc.RetryInfo; UNAVAILABLE: a restart) goes again, at most
 // 5 attempts. A limit that retrying does not lift comes with a pushback of -1: not retried.
+// ServerService is left out: it meets no limit, and a wrong address should fail at once.
 const SERVICE_CONFIG = {
   methodConfig: [{
-    name: ["BlobService", "SceneService", "JobService", "ServerService"].map(
+    name: ["BlobService", "SceneService", "JobService"].map(
       (s) => ({ service: `matopt.v1.${s}` })),
     retryPolicy: {
       maxAttempts: 5,
