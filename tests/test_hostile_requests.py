@@ -120,8 +120,8 @@ def test_a_reference_over_the_pixel_limit_is_refused_from_its_header(users, bobs
         scene, [pb.Reference(blob=f"blobs/{sha}", filename="poster.png")]))
     assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
     assert ("reference image 'poster.png' is a 25000x25000 px PNG file: 625,000,000 px; the "
-            "limit is 67,108,864 px (matoptd --max-reference-pixels) (retrying the same request "
-            "does not lift this limit)") == err.details()
+            "limit is 67,108,864 px (matoptd --max-reference-pixels) (not retried: it holds "
+            "until the usage or the limit changes)") == err.details()
 
 
 def test_a_user_has_at_most_n_jobs_queued_or_running(users, bobs_job, cornell):

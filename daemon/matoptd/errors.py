@@ -25,7 +25,8 @@ class FailedPrecondition(UserError):
 
 class ResourceExhausted(UserError):
     """Over a limit that protects the other users: a quota, a budget of samples or jobs.
-    Retrying the same request does not lift it; ``Busy`` is the kind that does."""
+    Retrying at once does not lift it (clients do not retry it); ``Busy`` is the kind that
+    does."""
 
 
 class Busy(ResourceExhausted):

@@ -41,7 +41,7 @@ CODES = {InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
          Unavailable: grpc.StatusCode.UNAVAILABLE,
          Internal: grpc.StatusCode.INTERNAL}
 
-NOT_RETRIED = " (retrying the same request does not lift this limit)"
+NOT_RETRIED = " (not retried: it holds until the usage or the limit changes)"
 PUSHBACK = "grpc-retry-pushback-ms"  # gRPC's retry policy: delay, or < 0 for "do not retry"
 ATTEMPTS = "grpc-previous-rpc-attempts"  # sent by gRPC's retries
 RETRY_CAP_S = 60.0
