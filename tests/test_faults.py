@@ -10,6 +10,8 @@ import os
 import signal
 import threading
 import time
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -51,6 +53,19 @@ def cornell_job(stubs: Stubs, iterations: int, res: int = 32, spp: int = 4, **sp
 
 def worker(stubs: Stubs, index: int = 0) -> pb.Worker:
     return stubs.server.GetServerInfo(pb.GetServerInfoRequest()).workers[index]
+
+
+@contextmanager
+def frozen(pid: int, then: int = signal.SIGCONT) -> Iterator[None]:
+    """The process stopped (SIGSTOP: alive, answering nothing), then sent ``then``."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        try:
+            os.kill(pid, then)
+        except ProcessLookupError:
+            pass
 
 
 def wait_worker(stubs: Stubs, states, timeout: float = 120) -> pb.Worker:
@@ -141,14 +156,8 @@ def test_a_hung_iteration_is_cut_off_by_the_watchdog(two_users):
     job = cornell_job(alice, 120)
     wait_iteration(alice, job.name, 20)
     hung = wait_worker(alice, (pb.WORKER_STATE_BUSY, pb.WORKER_STATE_IDLE))
-    os.kill(hung.pid, signal.SIGSTOP)  # alive, but answering nothing: a wedged renderer
-    try:
+    with frozen(hung.pid, signal.SIGKILL):  # alive, but answering nothing: a wedged renderer
         done = wait_state(alice, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
-    finally:
-        try:
-            os.kill(hung.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
     assert done.state == pb.JOB_STATE_SUCCEEDED, done
     assert any("stopped answering" in n for n in done.notes), done.notes
     assert worker(alice).restarts == 1
@@ -240,19 +249,13 @@ def test_a_long_iteration_cancelled_after_short_ones_keeps_what_they_finished(tw
     job = cornell_job(alice, 500)
     wait_iteration(alice, job.name, 3)
     busy = wait_worker(alice, (pb.WORKER_STATE_BUSY,))
-    os.kill(busy.pid, signal.SIGSTOP)  # the iteration in flight now never ends
-    try:
+    with frozen(busy.pid):  # the iteration in flight now never ends
         time.sleep(0.5)  # a step that had just returned is recorded
         began = time.monotonic()
         alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
         done = wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_FAILED),
                           timeout=60)
         took = time.monotonic() - began
-    finally:
-        try:
-            os.kill(busy.pid, signal.SIGCONT)
-        except ProcessLookupError:
-            pass
     assert done.state == pb.JOB_STATE_CANCELLED, done
     assert took < 8.0, f"the cancel took {took:.1f} s"
     assert done.iteration >= 3
