@@ -38,7 +38,8 @@ import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane",
-         "switching", "worker_restart", "two_workers", "geometry", "scheduling", "ray_cluster",
+         "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
+         "ray_cluster",
          "thesis_tables", "real_scenes", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 # Cases no longer run, and why: the summary says so, so that a reader of an older report

@@ -34,11 +34,16 @@ def token_file(folder: Path, users: dict[str, str] = TOKENS) -> Path:
     return path
 
 
+DATA_DIRS: list[Path] = []  # every test daemon's
+MESSAGES: list[str] = []    # every error message a call through ``Stubs`` received
+
+
 class Daemon:
     """A matoptd process; ``restart()`` keeps its data dir."""
 
     def __init__(self, data_dir: Path, tokens: Path | None = None, *extra: str) -> None:
         self.data_dir, self.tokens, self.extra = data_dir, tokens, list(extra)
+        DATA_DIRS.append(data_dir)
         self.proc: subprocess.Popen | None = None
         self.port = 0
         self.log = data_dir.parent / f"{data_dir.name}.log"
@@ -101,7 +106,27 @@ class _WithMetadata:
 
     def __getattr__(self, name):
         method = getattr(self._stub, name)
-        return lambda request, **kw: method(request, metadata=self._metadata, **kw)
+
+        def call(request, **kw):
+            try:
+                return method(request, metadata=self._metadata, **kw)
+            except grpc.RpcError as exc:
+                MESSAGES.append(exc.details() or "")
+                raise
+        return call
+
+
+@pytest.fixture
+def no_server_paths():
+    """After the test: no error message it received names a daemon's data directory (as
+    given, absolute or resolved) or a worker's cache."""
+    seen = len(MESSAGES)
+    yield
+    paths = {str(form) for d in DATA_DIRS for form in (d, d.absolute(), d.resolve())}
+    for message in MESSAGES[seen:]:
+        assert "worker-cache" not in message, message
+        for path in paths:
+            assert path not in message, message
 
 
 @pytest.fixture(scope="session")

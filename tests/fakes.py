@@ -200,13 +200,16 @@ class MemoryCheckpoints:
     def exists(self, job: str) -> bool:
         return job in self.files
 
+    def size(self, job: str) -> int:
+        return len(self.files.get(job, b""))
+
 
 class MemoryDisk:
     def __init__(self) -> None:
         self.full_since: float | None = None
         self.free = True
 
-    def space_back(self) -> bool:
+    def space_back(self, held: int = 0) -> bool:
         if self.full_since is not None and self.free:
             self.full_since = None
         return self.full_since is None

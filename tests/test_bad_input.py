@@ -12,6 +12,9 @@ from matopt_api.v1 import matopt_pb2 as pb
 from conftest import wait_state
 from scenes import MESH_SCENE, QUAD_OBJ, create_scene, exr, upload
 
+# Every message these tests receive is scanned for the daemon's own paths.
+pytestmark = pytest.mark.usefixtures("no_server_paths")
+
 
 def rpc_error(call, *args) -> grpc.RpcError:
     with pytest.raises(grpc.RpcError) as err:

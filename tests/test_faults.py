@@ -10,6 +10,8 @@ import os
 import signal
 import threading
 import time
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -51,6 +53,19 @@ def cornell_job(stubs: Stubs, iterations: int, res: int = 32, spp: int = 4, **sp
 
 def worker(stubs: Stubs, index: int = 0) -> pb.Worker:
     return stubs.server.GetServerInfo(pb.GetServerInfoRequest()).workers[index]
+
+
+@contextmanager
+def frozen(pid: int, then: int = signal.SIGCONT) -> Iterator[None]:
+    """The process stopped (SIGSTOP: alive, answering nothing), then sent ``then``."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        try:
+            os.kill(pid, then)
+        except ProcessLookupError:
+            pass
 
 
 def wait_worker(stubs: Stubs, states, timeout: float = 120) -> pb.Worker:
@@ -141,14 +156,8 @@ def test_a_hung_iteration_is_cut_off_by_the_watchdog(two_users):
     job = cornell_job(alice, 120)
     wait_iteration(alice, job.name, 20)
     hung = wait_worker(alice, (pb.WORKER_STATE_BUSY, pb.WORKER_STATE_IDLE))
-    os.kill(hung.pid, signal.SIGSTOP)  # alive, but answering nothing: a wedged renderer
-    try:
+    with frozen(hung.pid, signal.SIGKILL):  # alive, but answering nothing: a wedged renderer
         done = wait_state(alice, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=300)
-    finally:
-        try:
-            os.kill(hung.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
     assert done.state == pb.JOB_STATE_SUCCEEDED, done
     assert any("stopped answering" in n for n in done.notes), done.notes
     assert worker(alice).restarts == 1
@@ -224,3 +233,64 @@ def test_the_server_process_never_loads_the_renderer(two_users):
     w = worker(alice)
     worker_maps = open(f"/proc/{w.pid}/maps").read()
     assert "libdrjit" in worker_maps  # the check above can see them where they are
+
+
+def test_a_long_iteration_cancelled_after_short_ones_keeps_what_they_finished(two_users,
+                                                                              tmp_path):
+    """Short iterations, then one that does not end (its worker frozen with SIGSTOP, as a
+    render of minutes looks to the daemon): the cancel stops the worker within seconds, and
+    the iterations that finished are the job's LAST and BEST, exportable."""
+    import json
+
+    from matopt_client.client import connect
+    from matopt_client.export import export_job
+
+    daemon, alice, bob = two_users()
+    job = cornell_job(alice, 500)
+    wait_iteration(alice, job.name, 3)
+    busy = wait_worker(alice, (pb.WORKER_STATE_BUSY,))
+    with frozen(busy.pid):  # the iteration in flight now never ends
+        time.sleep(0.5)  # a step that had just returned is recorded
+        began = time.monotonic()
+        alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+        done = wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_FAILED),
+                          timeout=60)
+        took = time.monotonic() - began
+    assert done.state == pb.JOB_STATE_CANCELLED, done
+    assert took < 8.0, f"the cancel took {took:.1f} s"
+    assert done.iteration >= 3
+    history = alice.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+    assert [r.iteration for r in history] == list(range(done.iteration))
+    for which in (pb.WHICH_LAST, pb.WHICH_BEST):
+        result = alice.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=which))
+        expected = history[-1] if which == pb.WHICH_LAST else history[done.best_iteration]
+        assert result.iteration == expected.iteration
+        assert flat(result.parameters) == pytest.approx(flat(expected.parameters))
+        assert flat(result.initial_parameters) == pytest.approx([0.5] * 6)
+    client = connect(daemon.address, TOKENS["alice"])
+    try:
+        export_job(client, job.name, tmp_path / "out", "last")
+    finally:
+        client.close()
+    written = json.loads((tmp_path / "out" / "parameters.json").read_text())
+    assert written["iteration"] == done.iteration - 1
+    assert [x for k in WALLS for x in written["parameters"][k]] == pytest.approx(
+        flat(history[-1].parameters))
+
+
+def test_a_paused_job_shows_what_it_finished(two_users):
+    daemon, alice, bob = two_users()
+    job = cornell_job(alice, 500)
+    wait_iteration(alice, job.name, 3)
+    alice.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
+    paused = wait_state(alice, job.name, (pb.JOB_STATE_PAUSED,), timeout=60)
+    history = alice.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=job.name)).iterations
+    last = alice.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
+    assert last.iteration == paused.iteration - 1 == history[-1].iteration
+    assert flat(last.parameters) == pytest.approx(flat(history[-1].parameters))
+
+
+def flat(values) -> list[float]:
+    """The walls' values, one list (red, then green)."""
+    by_key = {v.key: list(v.value) for v in values}
+    return [x for k in WALLS for x in by_key[k]]

@@ -24,6 +24,9 @@ from matopt_api.v1 import matopt_pb2 as pb
 from conftest import Daemon, Stubs
 from scenes import QUAD_OBJ, camera, create_scene
 
+# Every message these tests receive is scanned for the daemon's own paths.
+pytestmark = pytest.mark.usefixtures("no_server_paths")
+
 QUAD = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
 
 
@@ -143,6 +146,24 @@ def test_absolute_and_parent_paths_are_refused_however_written(stubs, written):
     details = refused(stubs, {"scene.xml": scene(mesh("obj", written))})
     assert "is not allowed in a scene bundle" in details or "leaves the scene bundle" in details
     assert "'scene.xml'" in details
+
+
+LONG = "a" * 300  # bytes: over the 255 a file system takes for one name
+
+
+@pytest.mark.parametrize("files, main, named", [
+    ({f"{LONG}.xml": scene("")}, f"{LONG}.xml", f"{LONG}.xml"),
+    ({"scene.xml": scene(mesh("obj", f"{LONG}.obj")), f"{LONG}.obj": QUAD_OBJ.encode()},
+     "scene.xml", f"{LONG}.obj"),
+    ({"scene.xml": scene(mesh("obj", f"{LONG}/m.obj")), f"{LONG}/m.obj": QUAD_OBJ.encode()},
+     "scene.xml", f"{LONG}/m.obj"),
+], ids=["main", "mesh", "folder"])
+def test_a_name_over_255_bytes_is_refused_naming_the_file(stubs, files, main, named):
+    details = refused(stubs, files, main)
+    assert f"path '{named}'" in details
+    name = max(named.split("/"), key=len)
+    assert f"has a file or folder name of {len(name)} bytes" in details
+    assert "at most 255" in details
 
 
 def test_included_file_may_use_windows_separators(stubs):

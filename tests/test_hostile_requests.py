@@ -21,6 +21,9 @@ from test_faults import WALLS, cornell_job, two_users, wait_worker, worker  # no
 
 from test_image_headers import png_header_only
 
+# Every message these tests receive is scanned for the daemon's own paths.
+pytestmark = pytest.mark.usefixtures("no_server_paths")
+
 # 32x32 px at 65536 spp: 2^26 samples, just within the default limit of a render call; one
 # iteration (render and gradient) takes minutes on CPU cores, however many. Memory stays
 # small: Mitsuba traces the samples in one kernel, without arrays of their size.
@@ -117,7 +120,8 @@ def test_a_reference_over_the_pixel_limit_is_refused_from_its_header(users, bobs
         scene, [pb.Reference(blob=f"blobs/{sha}", filename="poster.png")]))
     assert err.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
     assert ("reference image 'poster.png' is a 25000x25000 px PNG file: 625,000,000 px; the "
-            "limit is 67,108,864 px (matoptd --max-reference-pixels)") == err.details()
+            "limit is 67,108,864 px (matoptd --max-reference-pixels) (not retried: it holds "
+            "until the usage or the limit changes)") == err.details()
 
 
 def test_a_user_has_at_most_n_jobs_queued_or_running(users, bobs_job, cornell):

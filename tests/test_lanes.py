@@ -15,7 +15,7 @@ from matoptd.scheduling.recovery import Recovery
 from matoptd.scheduling.scheduler import Scheduler
 from matoptd.scheduling.state import State
 
-from fakes import Clock, FakeEngine, FakeWorker, MemoryStore, job
+from fakes import KEY, Clock, FakeEngine, FakeWorker, MemoryStore, job
 
 WATCHDOG = 120.0
 
@@ -173,9 +173,38 @@ def test_a_cancel_kept_waiting_by_a_long_iteration_stops_the_worker():
     d.run()
     done = d.store.get_job("jobs/a")
     assert (done.phase, done.stop_reason) == (Phase.CANCELLED, "cancelled")
-    assert "cancelled during a long iteration: its renderer process was stopped, so the job " \
-           "has no results" in done.notes
+    assert any(n.startswith("cancelled during a long iteration: its renderer process was "
+                            "stopped") for n in done.notes)
     assert d.worker.restarts == 1 and d.worker.state == "idle"  # a fresh process took over
+    # What it finished is kept: the last finished iteration is its LAST and (the loss only
+    # fell) its BEST, with the values that iteration reported.
+    finished = done.iteration - 1
+    assert finished >= 9
+    for which in ("last", "best"):
+        kept = d.store.results[("jobs/a", which)]
+        assert kept.iteration == finished
+        assert kept.values[KEY].inline == pytest.approx([finished / 100] * 3)
+        assert kept.initial[KEY].inline == pytest.approx([0.0] * 3)
+        assert kept.loss == pytest.approx(1 / (finished + 1))
+
+
+def test_a_cancel_inside_the_first_iteration_leaves_no_results():
+    d = Daemon()
+    d.control.create(job("a", iterations=1000), None)
+    monitor = Monitor(d.state, d.recovery, lambda: True)
+
+    def cancel_then_wait(method, args):
+        if method == "step":
+            d.control.cancel("alice", "jobs/a")
+            d.clock.t += CANCEL_GRACE_S + 1
+            monitor.check()
+            d.worker.before = None
+    d.worker.before = cancel_then_wait
+    d.run()
+    done = d.store.get_job("jobs/a")
+    assert done.phase is Phase.CANCELLED and done.iteration == 0
+    assert not [k for k in d.store.results if k[0] == "jobs/a"]
+    assert any("so the job has no results" in n for n in done.notes)
 
 
 def test_a_cancel_at_an_iteration_boundary_ends_the_job_with_its_results():

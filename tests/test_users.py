@@ -48,6 +48,17 @@ def test_health_needs_no_token(shared):
     channel.close()
 
 
+def test_health_lists_the_server_and_every_service(shared):
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+    with grpc.insecure_channel(shared.address) as channel:
+        listed = health_pb2_grpc.HealthStub(channel).List(health_pb2.HealthListRequest(),
+                                                         timeout=10)
+    assert {name: s.status for name, s in listed.statuses.items()} == {
+        name: health_pb2.HealthCheckResponse.SERVING
+        for name in ("", "matopt.v1.BlobService", "matopt.v1.SceneService",
+                     "matopt.v1.JobService", "matopt.v1.ServerService")}
+
+
 def test_users_see_and_control_only_their_own_jobs(shared):
     alice, bob = Stubs(shared.address, TOKENS["alice"]), Stubs(shared.address, TOKENS["bob"])
     assert alice.server.GetServerInfo(pb.GetServerInfoRequest()).user == "alice"

@@ -9,6 +9,7 @@ module does not wrap.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import posixpath
 import re
@@ -32,6 +33,25 @@ GRPC_SCHEMES = ("unix:", "unix-abstract:", "vsock:", "dns:", "ipv4:", "ipv6:")
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 CHUNK_BYTES = 1024 * 1024  # the API's chunk limit for blob streams
 PROBE_TIMEOUT_S = 5.0  # the first call: long enough for a remote daemon, short enough to wait out
+# gRPC's own retries (a service config): a call refused for a moment (RESOURCE_EXHAUSTED: too
+# many of one's requests in progress; UNAVAILABLE: the daemon restarting) goes again, after
+# the delay the daemon names (grpc-retry-pushback-ms, with its google.rpc.RetryInfo) or after
+# an exponential backoff, at most 5 attempts in all (gRPC's cap). A limit that retrying does
+# not lift comes with a pushback of -1 and is not retried. Streams of blob chunks are retried
+# only while they fit gRPC's retry buffer (256 KiB), the first chunk of an upload included.
+# ServerService is left out: GetServerInfo meets no limit, and the first call of a connection
+# (``probe``) should say at once that no daemon answers at an address.
+RETRY_POLICY = {
+    "maxAttempts": 5,
+    "initialBackoff": "0.2s",
+    "maxBackoff": "5s",
+    "backoffMultiplier": 2,
+    "retryableStatusCodes": ["RESOURCE_EXHAUSTED", "UNAVAILABLE"],
+}
+SERVICE_CONFIG = json.dumps({"methodConfig": [{
+    "name": [{"service": f"matopt.v1.{s}"} for s in
+             ("BlobService", "SceneService", "JobService")],
+    "retryPolicy": RETRY_POLICY}]})
 
 # States after which a job changes no more (INTERRUPTED may still be resumed, but no longer runs).
 TERMINAL_STATES = frozenset({pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED})
@@ -149,6 +169,8 @@ def connect(server: str, token: str | None = None, tls_ca: str | None = None, *,
     options = [
         ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
         ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+        ("grpc.enable_retries", 1),
+        ("grpc.service_config", SERVICE_CONFIG),
     ]
     if tls_ca:
         try:

@@ -24,7 +24,18 @@ class FailedPrecondition(UserError):
 
 
 class ResourceExhausted(UserError):
-    """Over a limit that protects the other users: a quota, a budget of samples or jobs."""
+    """Over a limit that protects the other users: a quota, a budget of samples or jobs.
+    Retrying at once does not lift it (clients do not retry it); ``Busy`` is the kind that
+    does."""
+
+
+class Busy(ResourceExhausted):
+    """Over a limit that lifts by itself within seconds (too many of the caller's requests in
+    progress): the answer says when to try again, and clients retry by themselves."""
+
+    def __init__(self, message: str, retry_after: float) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after  # seconds
 
 
 class Unavailable(UserError):

@@ -1,16 +1,18 @@
 """``matoptd``: start the daemon.
 
     matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
-            [--devices 0,1 | --workers N] [--ray ADDRESS] [--server-cores N]
-            [--worker-memory SIZE]
+            [--devices 0,1 | --workers N] [--workers-per-device auto|N] [--ray ADDRESS]
+            [--server-cores N]
+            [--server-nice N] [--worker-memory SIZE]
             [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
             [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
             [--max-reference-pixels N] [--max-reference-memory SIZE]
             [--max-jobs-per-user N] [--max-tasks-per-user N]
 
 Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS, MATOPTD_RAY,
-MATOPTD_SERVER_CORES,
+MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS,
+MATOPTD_WORKERS_PER_DEVICE, MATOPTD_RAY,
+MATOPTD_SERVER_CORES, MATOPTD_SERVER_NICE,
 MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
 MATOPTD_MAX_SAMPLES etc. for the limits).
 
@@ -46,10 +48,12 @@ from .server import admission, app
 from .server.backend import Backend
 from .server.auth import Authenticator, load_tokens
 from .store.store import Store
-from .workers import devices
+from .workers import devices, sizing
 from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
+
+SERVER_NICE = 10  # nice levels of the server's threads below the workers': rendering goes first
 
 # The admission limits (admission.Limits): what one request or one user may ask of the shared
 # workers. Sizes take suffixes (4G, 512M).
@@ -94,10 +98,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "private Ray instance on this machine; one worker per GPU of the cluster, or "
                         "with --workers N (or no GPU in the cluster at start) N CPU workers per "
                         "machine (needs matopt-mitsuba[daemon,ray])")
+    p.add_argument("--workers-per-device", default=env("MATOPTD_WORKERS_PER_DEVICE", "auto"),
+                   metavar="auto|N",
+                   help="worker processes sharing each CUDA device: 'auto' as many as its free "
+                        "memory holds for jobs up to --max-samples (at most 8), or N; on a "
+                        "CPU-only host N workers that each render on all cores ('auto': one, "
+                        "or --workers) (default %(default)s)")
     p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
                         "status traffic never competes with rendering (default: all shared)")
+    p.add_argument("--server-nice", type=int,
+                   default=int(env("MATOPTD_SERVER_NICE", str(SERVER_NICE))),
+                   help="nice levels the server's threads (gRPC, the API's handlers) run "
+                        "below the workers, so that on cores they share rendering goes first; "
+                        "0 leaves them as started (default %(default)s)")
     p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
                    help="resident memory a worker may use before it is stopped and its job "
                         "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
@@ -177,6 +192,8 @@ async def serve(args: argparse.Namespace) -> None:
     else:
         lanes = await asyncio.to_thread(start_workers, args, store)
 
+    if args.server_nice > 0:
+        devices.lower_priority(args.server_nice, lanes.thread_ids())
     backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
     server, health_servicer, names = app.build(backend, Authenticator(tokens))
@@ -234,7 +251,14 @@ def start_workers(args: argparse.Namespace, store: Store) -> Lanes:
     chosen = [d.strip() for d in args.devices.split(",")] if args.devices else None
     if args.workers is not None and args.workers < 1:
         raise SystemExit(f"matoptd: --workers must be >= 1, got {args.workers}")
-    places = devices.placements(chosen, args.workers, args.variant, args.worker_cores)
+    try:
+        per_device = sizing.parse(args.workers_per_device)
+    except ValueError as exc:
+        raise SystemExit(f"matoptd: --workers-per-device: {exc}")
+    places = devices.placements(chosen, args.workers, args.variant, args.worker_cores,
+                                per_device, args.max_samples)
+    for why in dict.fromkeys(p.sizing for p in places if p.sizing):
+        log.info("workers: %s", why)
     lanes, failures = _run(args, store, places)
     if not lanes.ready and places[0].cuda is not None and chosen is None \
             and args.variant is None:

@@ -75,6 +75,13 @@ class _Unclear(BundleError):
     """A ``$`` substitution whose result Mitsuba might compute differently."""
 
 
+# A bundle is laid out as files under a folder of the daemon's (and its workers'): each
+# name must fit a file system's limit (255 bytes on Linux, macOS and Windows alike), and the
+# whole path well within PATH_MAX (4096) once under that folder.
+MAX_NAME_BYTES = 255
+MAX_PATH_BYTES = 1024
+
+
 def normalize(path: str, *, origin: str = "") -> str:
     """Canonical bundle path: '/' separators, no '.', no '..' that leaves the bundle.
 
@@ -101,6 +108,14 @@ def normalize(path: str, *, origin: str = "") -> str:
             parts.append(part)
     if not parts:
         raise BundleError(f"empty path '{path}'{where}")
+    for part in parts:
+        if len(part.encode()) > MAX_NAME_BYTES:
+            raise BundleError(f"path '{path}'{where} has a file or folder name of "
+                              f"{len(part.encode())} bytes: file systems take at most "
+                              f"{MAX_NAME_BYTES}; rename it")
+    if len("/".join(parts).encode()) > MAX_PATH_BYTES:
+        raise BundleError(f"path '{path}'{where} is {len('/'.join(parts).encode())} bytes "
+                          f"long: a bundle path may have at most {MAX_PATH_BYTES}")
     if parts[-1].endswith(".so"):
         raise BundleError(f"'{path}'{where} is a shared library: Mitsuba loads a "
                           "'plugins/<type>.so' it finds beside a scene as renderer code, so "

@@ -32,6 +32,29 @@ const CHUNK = 1 << 20; // UploadBlob takes chunks of at most 1 MiB
 
 const log = (...parts) => console.error(...parts);
 
+// gRPC's own retries, as the Python client library has them: a call refused for a moment
+// (RESOURCE_EXHAUSTED: too many of one's requests in progress, the daemon names the delay in
+// grpc-retry-pushback-ms and google.rpc.RetryInfo; UNAVAILABLE: a restart) goes again, at most
+// 5 attempts. A limit that retrying does not lift comes with a pushback of -1: not retried.
+// ServerService is left out: it meets no limit, and a wrong address should fail at once.
+const SERVICE_CONFIG = {
+  methodConfig: [{
+    name: ["BlobService", "SceneService", "JobService"].map(
+      (s) => ({ service: `matopt.v1.${s}` })),
+    retryPolicy: {
+      maxAttempts: 5,
+      initialBackoff: "0.2s",
+      maxBackoff: "5s",
+      backoffMultiplier: 2,
+      retryableStatusCodes: ["RESOURCE_EXHAUSTED", "UNAVAILABLE"],
+    },
+  }],
+};
+const CHANNEL_OPTIONS = {
+  "grpc.enable_retries": 1,
+  "grpc.service_config": JSON.stringify(SERVICE_CONFIG),
+};
+
 function connect() {
   const definition = protoLoader.loadSync("matopt/v1/matopt.proto", {
     includeDirs: [args.proto],
@@ -48,7 +71,7 @@ function connect() {
   // Sent with every call: the daemon's --tokens file maps the token to a user.
   const metadata = new grpc.Metadata();
   if (args.token) metadata.set("authorization", `Bearer ${args.token}`);
-  const make = (Service) => new Service(args.server, creds);
+  const make = (Service) => new Service(args.server, creds, CHANNEL_OPTIONS);
   return {
     blobs: make(v1.BlobService),
     scenes: make(v1.SceneService),

@@ -139,6 +139,9 @@ def info(as_json: bool) -> None:
         "capabilities": ", ".join(info.capabilities) or None,
         # A daemon older than the workers list reports none: say nothing rather than "none".
         "workers": workers.summary(info.workers) if info.workers else None,
+        # Workers sharing a device: how many, and why that many.
+        "per device": "; ".join(dict.fromkeys(w.sizing for w in info.workers if w.sizing))
+        or None,
     })
     for line in workers.worker_lines(info.workers, info.variant):
         click.echo(f"  {line}")

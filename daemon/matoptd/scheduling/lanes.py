@@ -385,6 +385,7 @@ class WorkerStatus:
     memory_limit: int
     threads: int
     node: str = ""
+    sizing: str = ""  # how many workers share its device, and why
 
 
 class Lanes:
@@ -436,6 +437,10 @@ class Lanes:
         self._threads.append(thread)
         thread.start()
         return started
+
+    def thread_ids(self) -> set[int]:
+        """The lanes' threads (the OS's ids): they start the worker processes."""
+        return {t.native_id for t in self._threads if t.native_id is not None}
 
     @property
     def ready(self) -> bool:
@@ -489,5 +494,6 @@ class Lanes:
                     w.name, w.state, w.info.get("variant", ""),
                     w.info.get("device", w.placement.describe()), w.info.get("host", ""),
                     w.pid, mine, len(loaded), w.restarts, w.last_exit, w.memory(),
-                    w.memory_limit, w.info.get("threads", w.placement.threads), w.node))
+                    w.memory_limit, w.info.get("threads", w.placement.threads), w.node,
+                    w.placement.sizing))
         return out

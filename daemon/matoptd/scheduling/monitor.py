@@ -36,15 +36,18 @@ class Monitor:
     def check(self) -> None:
         """One look at everything."""
         state = self.state
+        disk = state.store.disk
         with state.lock:
             late = state.scheduler.late_cancels(CANCEL_GRACE_S)
             held = state.scheduler.held
+            jobs = list(state.scheduler.jobs) if held or disk.full_since is not None else []
         workers = state.workers
         for w in workers.values():
             if w.state == "busy":
                 w.check_memory()
-        disk = state.store.disk
-        if (held or disk.full_since is not None) and disk.space_back() and held:
+        # What the held jobs write next: their checkpoints again (beside the ones they replace).
+        need = sum(state.store.checkpoints.size(name) for name in jobs)
+        if (held or disk.full_since is not None) and disk.space_back(need) and held:
             log.info("space on the data directory's disk again: jobs go on")
             try:
                 self.recovery.unhold()

@@ -10,6 +10,7 @@ import logging
 
 from ..errors import NotFound, UserError
 from ..records import ACTIVE, JobRecord, Phase, RESUME_PENDING
+from ..store.outputs import results_from_history
 from ..workers.client import EngineClient
 from ..workers.handle import Handle, WorkerLost
 from .scheduler import INTERRUPTIBLE, Action
@@ -77,11 +78,7 @@ class Recovery:
                           "than a worker may use: fewer pixels or samples per pixel, or a "
                           "larger limit (matoptd --worker-memory)")
             elif lost.cause == "stopped" and cancelling:
-                with self.state.lock:
-                    self.scheduler.cut_off(running.name)
-                    running.notes.append("cancelled during a long iteration: its renderer "
-                                         "process was stopped, so the job has no results")
-                    self.state.save(running)
+                self.cut_off(running)
             elif outcome.failed:
                 self.fail(running, "the renderer process " + ", then ".join(outcome.crashes)
                           + "; a job that takes its worker down twice is not tried again "
@@ -95,6 +92,32 @@ class Recovery:
         for name in outcome.others:
             self.note_reload(name, f"its renderer process {lost.reason}; the job goes on "
                              "from its last checkpoint")
+
+    def cut_off(self, record: JobRecord) -> None:
+        """A cancel stopped the job's worker mid-iteration: the job is CANCELLED and keeps
+        the iterations it finished, its best and last as their records reported them."""
+        kept = results_from_history(record, self.store.history(record.name))
+        for result in kept:
+            self.store.put_result(result)
+        large = sorted(k for k in record.shapes
+                       if kept and k not in kept[-1].values)
+        with self.state.lock:
+            self.scheduler.cut_off(record.name)
+            if kept:
+                shown = ", ".join(f"{r.which.upper()} iteration {r.iteration}" for r in kept)
+                record.notes.append(
+                    "cancelled during a long iteration: its renderer process was stopped; "
+                    f"the results are the finished iterations' values ({shown}), without "
+                    "renders or an optimized scene"
+                    + (f"; not kept: {', '.join(large)} (too large for the iteration "
+                       "records)" if large else ""))
+                best = next((r for r in kept if r.which == "best"), None)
+                if best is not None:
+                    record.best_values = dict(best.values)
+            else:
+                record.notes.append("cancelled during a long iteration, its first: its "
+                                    "renderer process was stopped, so the job has no results")
+            self.state.save(record)
 
     def fail(self, record: JobRecord, message: str) -> None:
         with self.state.lock:

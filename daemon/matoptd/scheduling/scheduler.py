@@ -256,7 +256,7 @@ class Scheduler:
 
     def cut_off(self, name: str) -> None:
         """A cancel stopped the job's worker in the middle of an iteration: the job is
-        CANCELLED now, without results."""
+        CANCELLED now, with what its finished iterations reported (``Recovery.cut_off``)."""
         record = self.jobs[name].record
         record.phase, record.stop_reason, record.ending = Phase.CANCELLED, "cancelled", None
         self.remove(name)

@@ -41,11 +41,13 @@ class CheckpointFiles(Protocol):
 
     def exists(self, job: str) -> bool: ...
 
+    def size(self, job: str) -> int: ...
+
 
 class DiskState(Protocol):
     full_since: float | None
 
-    def space_back(self) -> bool: ...
+    def space_back(self, held: int = 0) -> bool: ...
 
 
 class JobStore(Protocol):

@@ -13,7 +13,9 @@ Two kinds of refusal:
 - INVALID_ARGUMENT for what can never be rendered: a film larger than ``--max-film-side``, a
   render call of 2^32 samples or more (Mitsuba refuses those), an image that is not one;
 - RESOURCE_EXHAUSTED for budgets that protect the other users: samples per render call, film
-  memory per request, reference size, a user's jobs and scene tasks in flight.
+  memory per request, reference size, a user's jobs and scene tasks in flight. Scene tasks
+  in flight are the one limit that lifts by itself within seconds (``errors.Busy``): the
+  answer says when to come back, and clients retry it; the others are not retried.
 Each message names the value, the limit and the ``matoptd`` flag that sets it.
 """
 
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import random
+import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Iterator
@@ -28,7 +32,7 @@ from typing import Callable, Iterator
 from matopt_api.costs import format_size
 
 from .. import engine_api as api
-from ..errors import InvalidArgument, ResourceExhausted
+from ..errors import Busy, InvalidArgument, ResourceExhausted
 from ..settings import JobSettings
 from .image_headers import BadHeader, ImageHeader, read_header
 
@@ -230,23 +234,36 @@ def check_jobs(user: str, active: int, limits: Limits) -> None:
 class TaskSlots:
     """Scene tasks in flight per user. A task (a scene load, a render, a reference check)
     goes to a worker before any job's next iteration, so one user's burst of them would hold
-    back every job and every other user's task."""
+    back every job and every other user's task. Over the limit, a request is told to come back
+    (``Busy``) after about as long as a task has lately held its slot, spread at random so
+    that a burst's retries do not all arrive at once."""
 
-    def __init__(self, limits: Limits) -> None:
-        self.limits = limits
+    RETRY_S = (0.5, 30.0)  # the least and the most a caller is told to wait (a first time)
+
+    def __init__(self, limits: Limits, clock: Callable[[], float] = time.monotonic,
+                 spread: Callable[[], float] = random.random) -> None:
+        self.limits, self.clock, self.spread = limits, clock, spread
         self.held: collections.Counter[str] = collections.Counter()
+        self.typical = 1.0  # seconds a task holds its slot (a moving average)
+
+    def retry_after(self) -> float:
+        lo, hi = self.RETRY_S
+        return min(hi, max(lo, self.typical * (0.5 + self.spread())))
 
     @contextlib.contextmanager
     def hold(self, user: str) -> Iterator[None]:
         if self.held[user] >= self.limits.max_tasks_per_user:
-            raise ResourceExhausted(
+            wait = self.retry_after()
+            raise Busy(
                 f"user '{user}' already has {self.held[user]} scene request(s) (CreateScene, "
                 f"RenderScene, CreateJob) in progress; {_over('max_tasks_per_user', self.limits)}"
-                ": wait for one to return")
+                ": try again in a few seconds (clients retry by themselves)", wait)
         self.held[user] += 1
+        began = self.clock()
         try:
             yield
         finally:
+            self.typical = 0.7 * self.typical + 0.3 * (self.clock() - began)
             self.held[user] -= 1
             if not self.held[user]:
                 del self.held[user]

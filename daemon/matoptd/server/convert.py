@@ -234,4 +234,4 @@ def worker_to_pb(w: WorkerStatus) -> pb.Worker:
                      device=w.device, host=w.host, pid=w.pid, jobs=w.jobs,
                      job_count=w.job_count, restarts=w.restarts, last_exit=w.last_exit,
                      memory_bytes=w.memory, memory_limit_bytes=w.memory_limit,
-                     threads=w.threads, node=w.node)
+                     threads=w.threads, node=w.node, sizing=w.sizing)

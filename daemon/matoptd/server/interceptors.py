@@ -6,6 +6,12 @@ their own, pass untouched. A handler reads its caller with ``caller()``.
 The daemon's errors (``errors.py``) become status codes here and nowhere else: each kind its
 code, with its message as it stands. Anything else that escapes a handler is INTERNAL, logged,
 and confined to that one request.
+
+RESOURCE_EXHAUSTED comes in two kinds, told apart for gRPC's own retries (which go by status
+code): a limit that lifts within seconds (``Busy``) carries ``google.rpc.RetryInfo`` in the
+status details and the delay as ``grpc-retry-pushback-ms``, which a client's retry policy waits
+for; any other limit (a quota, a size) says so in its message and sends a pushback of -1, which
+tells the retry policy not to retry.
 """
 
 from __future__ import annotations
@@ -16,9 +22,11 @@ import logging
 from typing import Any, AsyncIterator, Awaitable, Callable
 
 import grpc
+from google.protobuf import any_pb2, duration_pb2
 from google.protobuf.message import Message
+from google.rpc import error_details_pb2, status_pb2
 
-from ..errors import (FailedPrecondition, Internal, InvalidArgument, NotFound,
+from ..errors import (Busy, FailedPrecondition, Internal, InvalidArgument, NotFound,
                       ResourceExhausted, Unavailable, UserError)
 from . import fields
 from .auth import Authenticator
@@ -32,6 +40,11 @@ CODES = {InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
          ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
          Unavailable: grpc.StatusCode.UNAVAILABLE,
          Internal: grpc.StatusCode.INTERNAL}
+
+NOT_RETRIED = " (not retried: it holds until the usage or the limit changes)"
+PUSHBACK = "grpc-retry-pushback-ms"  # gRPC's retry policy: delay, or < 0 for "do not retry"
+ATTEMPTS = "grpc-previous-rpc-attempts"  # sent by gRPC's retries
+RETRY_CAP_S = 60.0
 
 _caller: contextvars.ContextVar[str] = contextvars.ContextVar("caller")
 
@@ -48,6 +61,27 @@ def code(exc: UserError) -> grpc.StatusCode:
         if kind in CODES:
             return CODES[kind]
     return grpc.StatusCode.INVALID_ARGUMENT
+
+
+def status(exc: UserError, attempts: int = 0
+           ) -> tuple[grpc.StatusCode, str, tuple[tuple[str, str | bytes], ...]]:
+    """The status an error answers with: code, message and trailing metadata (for
+    RESOURCE_EXHAUSTED, whether and when to retry). ``attempts``: how often the caller was
+    refused before (gRPC's grpc-previous-rpc-attempts); each doubles the delay, as a client's
+    own exponential backoff would, since a pushback takes the backoff's place."""
+    kind, message = code(exc), str(exc)
+    if isinstance(exc, Busy):
+        wait = min(RETRY_CAP_S, exc.retry_after * 2 ** min(attempts, 8))
+        delay = duration_pb2.Duration()
+        delay.FromNanoseconds(round(wait * 1e9))
+        detail = any_pb2.Any()
+        detail.Pack(error_details_pb2.RetryInfo(retry_delay=delay))
+        rich = status_pb2.Status(code=kind.value[0], message=message, details=[detail])
+        return kind, message, (("grpc-status-details-bin", rich.SerializeToString()),
+                               (PUSHBACK, str(max(1, round(wait * 1000)))))
+    if isinstance(exc, ResourceExhausted):
+        return kind, message + NOT_RETRIED, ((PUSHBACK, "-1"),)
+    return kind, message, ()
 
 
 def _ours(details: grpc.HandlerCallDetails, services: frozenset[str]) -> bool:
@@ -86,10 +120,13 @@ async def _refuse_stream(request: Any, context: grpc.aio.ServicerContext
 
 class Errors(grpc.aio.ServerInterceptor):
     """Checks each request's fields (``fields.check``) and answers the daemon's errors with
-    their status codes, around every handler of ``services``."""
+    their status codes, around every handler of ``services``. ``hidden``: the daemon's own
+    paths (its data directory) and the words that stand for them in a message: no answer
+    shows a caller where the daemon keeps anything."""
 
-    def __init__(self, services: list[str]) -> None:
+    def __init__(self, services: list[str], hidden: dict[str, str] | None = None) -> None:
         self.services = frozenset(services)
+        self.hidden = hidden or {}
 
     async def intercept_service(self, continuation: Continuation,
                                 details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler:
@@ -100,16 +137,17 @@ class Errors(grpc.aio.ServerInterceptor):
             inner_stream = handler.unary_stream
 
             async def stream(request, context):
-                await _guard(context, lambda: _check(request))
+                await _guard(context, lambda: _check(request), self.hidden)
                 responses = inner_stream(request, context).__aiter__()
-                while (item := await _guard(context, lambda: _next(responses))) is not _END:
+                while (item := await _guard(context, lambda: _next(responses),
+                                            self.hidden)) is not _END:
                     yield item
             return _wrapped(handler, None, stream)
         inner = handler.unary_unary or handler.stream_unary
 
         async def unary(request, context):
-            await _guard(context, lambda: _check(request))
-            return await _guard(context, lambda: inner(request, context))
+            await _guard(context, lambda: _check(request), self.hidden)
+            return await _guard(context, lambda: inner(request, context), self.hidden)
         return _wrapped(handler, unary, None)
 
 
@@ -128,18 +166,38 @@ async def _next(responses: AsyncIterator[Any]) -> Any:
         return _END
 
 
-async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[Any]]) -> Any:
+async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[Any]],
+                 hidden: dict[str, str]) -> Any:
     """Runs one step of a handler, turning the daemon's errors into statuses."""
     try:
         return await fn()
     except UserError as exc:
-        await context.abort(code(exc), str(exc))
+        kind, message, trailers = status(exc, _attempts(context))
+        await context.abort(kind, hide(message, hidden), trailers)
     except (grpc.aio.AbortError, asyncio.CancelledError):
         raise
     except Exception as exc:  # noqa: BLE001 - one bad request must not take others down
         log.exception("internal error")
         await context.abort(grpc.StatusCode.INTERNAL,
-                            f"internal error: {type(exc).__name__}: {exc}")
+                            hide(f"internal error: {type(exc).__name__}: {exc}", hidden))
+
+
+def hide(message: str, hidden: dict[str, str]) -> str:
+    """``message`` with each hidden path (longest first: a folder inside another) replaced by
+    the words that stand for it."""
+    for path in sorted(hidden, key=len, reverse=True):
+        message = message.replace(path, hidden[path])
+    return message
+
+
+def _attempts(context: grpc.aio.ServicerContext) -> int:
+    for key, value in context.invocation_metadata() or ():
+        if key == ATTEMPTS:
+            try:
+                return int(value)
+            except ValueError:
+                return 0
+    return 0
 
 
 def _wrapped(handler: grpc.RpcMethodHandler, unary: Callable | None,

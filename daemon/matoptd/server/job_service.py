@@ -16,6 +16,7 @@ from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 from ..errors import FailedPrecondition
 from ..records import ACTIVE, JobRecord, Phase
+from ..store.outputs import results_from_history
 from . import admission, convert, job_spec
 from .backend import Backend
 from .interceptors import caller
@@ -138,10 +139,13 @@ class JobService(rpc.JobServiceServicer):
         job = self.store.get_job(name, caller())
         chosen = which(request.which)
         result = self.store.result(name, chosen)
+        if result is None and not job.phase.final:  # what its iterations so far reported
+            result = next((r for r in results_from_history(job, self.store.history(name))
+                           if r.which == chosen), None)
         if result is None:
             raise FailedPrecondition(f"job '{name}' has no {chosen.upper()} result "
                                      f"({job.phase.state}): results exist once a job "
-                                     "succeeded or was cancelled after its first iteration")
+                                     "has finished its first iteration")
         return convert.result_to_pb(result, job)
 
     async def GetJobHistory(self, request, context):

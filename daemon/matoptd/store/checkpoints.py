@@ -41,5 +41,12 @@ class Checkpoints:
     def exists(self, job: str) -> bool:
         return self.path(job).exists()
 
+    def size(self, job: str) -> int:
+        """Bytes of the job's checkpoint (0: none)."""
+        try:
+            return self.path(job).stat().st_size
+        except FileNotFoundError:
+            return 0
+
     def delete(self, job: str) -> None:
         self.path(job).unlink(missing_ok=True)

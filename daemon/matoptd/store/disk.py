@@ -9,11 +9,30 @@ import errno
 import shutil
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator, NamedTuple
 
 from ..errors import DiskFull
 
-FREE_TO_RESUME = 64 << 20  # after the disk filled up, writes go on once this much is free
+# After the disk filled up, writes go on once the held work's next writes fit, with a margin
+# of 1% of the disk, at least MIN_MARGIN (SQLite's records and journal), at most MAX_MARGIN.
+MIN_MARGIN = 1 << 20
+MAX_MARGIN = 64 << 20
+
+
+def free_to_resume(total: int, held: int) -> int:
+    """The free bytes that let writes go on after the disk filled up: ``held``, what the held
+    jobs write next (a checkpoint is written beside the one it replaces, so as much as their
+    checkpoints take now), and a margin relative to the disk (``total`` bytes), so that a large
+    disk does not fill up again at once and a small one is not asked for more than it has."""
+    return held + min(MAX_MARGIN, max(MIN_MARGIN, total // 100))
+
+
+class Usage(NamedTuple):
+    """What ``shutil.disk_usage`` reads, in bytes."""
+
+    total: int
+    used: int
+    free: int
 
 
 def is_full(exc: BaseException) -> bool:
@@ -22,18 +41,22 @@ def is_full(exc: BaseException) -> bool:
 
 
 class Disk:
-    def __init__(self, root: Path) -> None:
-        self.root = root
+    def __init__(self, root: Path, usage: Callable[[Path], Usage] = shutil.disk_usage
+                 ) -> None:
+        self.root, self.usage = root, usage
         self.full_since: float | None = None  # when a write last failed for want of space
 
     def note_full(self) -> None:
         if self.full_since is None:
             self.full_since = time.monotonic()
 
-    def space_back(self) -> bool:
-        """Whether writes can go on: true unless the disk filled up and is still short."""
-        if self.full_since is not None and shutil.disk_usage(self.root).free >= FREE_TO_RESUME:
-            self.full_since = None
+    def space_back(self, held: int = 0) -> bool:
+        """Whether writes can go on: true unless the disk filled up and is still short of
+        what the held work (``held`` bytes) needs (``free_to_resume``)."""
+        if self.full_since is not None:
+            usage = self.usage(self.root)
+            if usage.free >= free_to_resume(usage.total, held):
+                self.full_since = None
         return self.full_since is None
 
     @contextlib.contextmanager

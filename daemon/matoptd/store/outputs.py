@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from .. import engine_api as api
-from ..records import BundleFile, ImageRef, ResultRecord, SceneRecord
+from ..records import BundleFile, ImageRef, JobRecord, ResultRecord, SceneRecord
 from ..settings import Values, npy
 
 Put = Callable[[bytes], str]  # bytes -> digest, written for the job's owner
@@ -50,3 +50,35 @@ def keep_result(job: str, result: api.Result, shapes: dict[str, list[int]],
         gains={s: np.asarray(g, dtype=np.float32).ravel().tolist()
                for s, g in sorted(result.gains.items())},
         standard_errors=dict(result.standard_errors), gain_errors=dict(result.gain_errors))
+
+
+def results_from_history(job: JobRecord, history: list[api.IterationRecord]
+                         ) -> list[ResultRecord]:
+    """A job's "best" and "last" as its reported iterations left them, without a renderer:
+    what a job stopped in the middle of an iteration (a cancel that stopped its worker) keeps,
+    and what a paused or interrupted job shows. Only the values that travel in iteration
+    records (parameters of at most ``engine_api.SMALL`` components, the gains) are there; no
+    renders and no optimized scene, which need a worker."""
+    if not history:
+        return []
+    by_iteration = {r.iteration: r for r in history}
+    first = by_iteration.get(0)
+    chosen = [("best", by_iteration.get(job.best_iteration), job.best_loss),
+              ("last", history[-1], history[-1].loss)]
+    out = []
+    for which, record, loss in chosen:
+        if record is None:
+            continue
+        out.append(ResultRecord(
+            job=job.name, which=which, iteration=record.iteration, loss=float(loss),
+            values=keep_values(record.values, job.shapes, _no_blobs),
+            initial=keep_values(first.values, job.shapes, _no_blobs) if first else {},
+            shapes=dict(job.shapes), images=[], scene_files=[], scene_file="",
+            unplaced=[],
+            gains={s: np.asarray(g, dtype=np.float32).ravel().tolist()
+                   for s, g in sorted(record.gains.items())}))
+    return out
+
+
+def _no_blobs(data: bytes) -> str:
+    raise AssertionError("iteration records hold only values small enough to keep inline")

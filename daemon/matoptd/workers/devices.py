@@ -10,6 +10,9 @@ import re
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
+
+from . import sizing
 
 
 @dataclass(frozen=True)
@@ -20,6 +23,7 @@ class Placement:
     cuda: str | None
     cores: tuple[int, ...]
     threads: int
+    sizing: str = ""  # how many workers share the device, and why (workers/sizing.py)
 
     def describe(self) -> str:
         if self.cuda is not None:
@@ -37,6 +41,21 @@ def cuda_devices() -> list[str]:
     if out.returncode != 0:
         return []
     return [line.strip() for line in out.stdout.splitlines() if line.strip().isdigit()]
+
+
+def gpu_free_memory(device: str) -> int | None:
+    """Free bytes of a CUDA device (index or UUID) as nvidia-smi reads them; None when it
+    cannot."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=memory.free", "--format=csv,noheader,"
+                              "nounits", "-i", device], capture_output=True, text=True,
+                             timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    try:
+        return int(out.stdout.split()[0]) << 20 if out.returncode == 0 else None  # MiB
+    except (IndexError, ValueError):
+        return None
 
 
 def cpu_cores() -> list[int]:
@@ -70,12 +89,38 @@ def reserve_cores(n: int) -> list[int]:
     return cores[n:]
 
 
+def lower_priority(by: int, keep: set[int]) -> int:
+    """Lowers every thread of this process but ``keep`` by ``by`` nice levels (to at most 19)
+    and returns how many it lowered. The server's threads (gRPC, handlers) then give way to
+    the render threads on cores they share, so status traffic takes its CPU from the server
+    rather than from the jobs. ``keep``: the lanes' threads, which start the worker processes
+    (a process starts with the nice value of the thread that forked it, and an unprivileged
+    one cannot lower it back). Threads started later by a lowered one inherit its value."""
+    lowered = 0
+    for task in os.listdir("/proc/self/task"):
+        tid = int(task)
+        if tid in keep:
+            continue
+        try:
+            now = os.getpriority(os.PRIO_PROCESS, tid)
+            if now < 19:
+                os.setpriority(os.PRIO_PROCESS, tid, min(19, now + by))
+                lowered += 1
+        except (ProcessLookupError, PermissionError):
+            pass  # a thread that ended meanwhile
+    return lowered
+
+
 def placements(devices: list[str] | None, workers: int | None, variant: str | None,
-               cores: list[int] | None = None) -> list[Placement]:
-    """One worker per CUDA device (``devices``, else every one nvidia-smi lists or
-    CUDA_VISIBLE_DEVICES names), unless CPU workers are asked for (``workers``, or an LLVM
+               cores: list[int] | None = None, per_device: int | None = None,
+               max_samples: int = 1 << 26,
+               free_memory: Callable[[str], int | None] = gpu_free_memory) -> list[Placement]:
+    """Workers on each CUDA device (``devices``, else every one nvidia-smi lists or
+    CUDA_VISIBLE_DEVICES names), as many as ``per_device`` or, when None, as its free memory
+    holds (``sizing.for_device``), unless CPU workers are asked for (``workers``, or an LLVM
     ``variant``) or there is no GPU: then ``workers`` (default 1) CPU workers with the
-    ``cores`` (default: all this process may use) split between them."""
+    ``cores`` (default: all this process may use) split between them, or ``per_device``
+    workers that each render on all of them."""
     cores = cores or cpu_cores()
     cpu_asked = workers is not None or (variant or "").startswith(("llvm", "scalar"))
     if devices is None and not cpu_asked:
@@ -84,7 +129,16 @@ def placements(devices: list[str] | None, workers: int | None, variant: str | No
         devices = [d.strip() for d in visible.split(",") if d.strip()] if visible \
             else cuda_devices()
     if devices and not cpu_asked:
-        return [Placement(d, tuple(cores), len(cores)) for d in devices]
+        out = []
+        for d in dict.fromkeys(devices):  # a device named twice: --devices 0,0
+            named = devices.count(d)
+            size = sizing.for_device(free_memory(d), max_samples,
+                                     named if named > 1 else per_device)
+            out += [Placement(d, tuple(cores), len(cores), size.why)] * size.count
+        return out
+    if per_device is not None and workers is None:
+        why = f"{per_device} sharing the CPU's cores (--workers-per-device {per_device})"
+        return [Placement(None, tuple(cores), len(cores), why)] * per_device
     return [Placement(None, c, len(c)) for c in split_cores(cores, workers or 1)]
 
 

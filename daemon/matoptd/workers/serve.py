@@ -51,10 +51,11 @@ def _error_kind(exc: BaseException) -> str:
     return "engine" if isinstance(exc, api.EngineError) else "internal"
 
 
-def _message(exc: BaseException) -> str:
-    if isinstance(exc, api.EngineError):
-        return str(exc)
-    return f"{type(exc).__name__}: {exc}"
+def _message(exc: BaseException, cache: Path | None = None) -> str:
+    """What the daemon is told; the worker's cache, where it lays out bundles, is not named
+    (the caller knows only bundle paths, and the daemon's folders are not theirs to see)."""
+    text = str(exc) if isinstance(exc, api.EngineError) else f"{type(exc).__name__}: {exc}"
+    return text.replace(str(cache), "<worker cache>") if cache is not None else text
 
 
 def own_directory(cache: Path) -> Path:
@@ -103,7 +104,7 @@ def serve(conn: Connection, cache: Path) -> None:
             kind = _error_kind(exc)
             if kind == "internal":
                 traceback.print_exc(file=sys.stderr)
-            conn.send(("error", kind, _message(exc)))
+            conn.send(("error", kind, _message(exc, cache)))
         else:
             conn.send(("ok", result))
 
