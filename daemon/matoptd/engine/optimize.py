@@ -177,7 +177,7 @@ class Optimization:
             began = time.perf_counter()
             c.begin(self)
             c.setup_seconds += time.perf_counter() - began
-        self.integrator = integrator.make(self.chosen.name, self.chosen.max_depth)
+        self.integrator = integrator.make(self.chosen)
         self.integrator_reason = self.chosen.reason()
         self.initial = self.theta()[0]
 
