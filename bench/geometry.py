@@ -6,15 +6,23 @@ prb. The case runs the quad of tests/scenes.py QUAD_IN_FRONT (16x16, 8 spp), onc
 its reflectance (prb) and once its vertex positions from a (0.2, 0.1) shift, alternating, and
 reports seconds per iteration of each, their ratio, and how far the quad's centre ended from
 the truth in the image plane. This is the benchmark behind the `slow` test of the same job.
+
+Then the scene's own integrator, as Mitsuba's shape example sets it: the same quad at 24x24
+with ``direct_projective`` and ``sppi`` 0 (no indirect silhouettes), its vertex positions
+recovered by the daemon and by bench/plain.py's loop with the scene's integrator (both Adam
+0.02, constant rate, 8 spp, the same reference), alternating; the target is the daemon's
+seconds per step within 1.1x of the loop's.
 """
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
 import common
+import plain
 from common import Result, Settings, Target
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
@@ -22,6 +30,8 @@ from scenes import QUAD_CORNERS, QUAD_IN_FRONT, quad_obj
 
 KEY = "quad.vertex_positions"
 COLOUR = "quad.bsdf.reflectance.value"
+SPPI0 = ('<integrator type="direct_projective"><integer name="sppi" value="0"/></integrator>')
+OWN_RES, OWN_TARGET = 24, 1.1  # the scene's own integrator: film side; daemon / plain loop
 
 
 def run(settings: Settings, server: common.Daemon) -> Result:
@@ -55,7 +65,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     centre = np.array(last.history[-1].parameters[0].value).reshape(-1, 3).mean(axis=0)
     rows = [{"job": name, "integrator": rs[-1].job.integrator,
              "seconds_per_iteration": per[name]} for name, rs in runs.items()]
-    csv = common.write_csv(settings.out / "geometry.csv", rows)
+    own, own_rows, own_lines = scene_integrator(settings, server, work, iterations)
+    csv = common.write_csv(settings.out / "geometry.csv", rows + own_rows)
     ratio = per["geometry"] / per["material"]
     return Result("geometry", "Geometry (vertex positions, projective integrator)", [
         Target("seconds per iteration, vertex positions / reflectance",
@@ -64,5 +75,56 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                None),
         Target("quad centre error in the image plane after the run",
                f"{np.abs(centre[:2]).max():.3f} (start 0.2)", None),
-    ], lines=[f"{iterations} iterations at 16x16, 8 spp; {time.perf_counter() - began:.0f} s"],
-        files=[csv])
+        own,
+    ], lines=[f"{iterations} iterations at 16x16, 8 spp; {time.perf_counter() - began:.0f} s",
+              *own_lines], files=[csv])
+
+
+def scene_integrator(settings: Settings, server: common.Daemon, work: Path,
+                     iterations: int) -> tuple[Target, list[dict], list[str]]:
+    """The daemon's seconds per step against Mitsuba's loop, both with the scene's
+    direct_projective at sppi 0."""
+    client = server.client
+    xml = work / "quad_sppi0.xml"
+    xml.write_text(QUAD_IN_FRONT.replace('<integrator type="direct"/>', SPPI0)
+                   .replace('value="16"', f'value="{OWN_RES}"'))
+    main, files = mc.upload_bundle(client, xml)
+    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    ref_blob, ref_path = common.reference(client, scene, 128, work)
+    start = (np.array(QUAD_CORNERS, dtype=np.float32) + [0.2, 0.1, 0]).ravel().tolist()
+    spec = pb.JobSpec(scene=scene.name, references=[pb.Reference(blob=ref_blob)],
+                      iterations=iterations, spp=8, min_error=0.0, loss=pb.LOSS_MSE,
+                      schedule=pb.SCHEDULE_CONSTANT, parameters=[pb.ParameterSpec(
+                          key=KEY, learning_rate=0.02, initial_value=start)])
+    loop = plain.PlainSpec(xml, ref_path, {KEY: start}, iterations, 8, integrator="",
+                           ranges={KEY: (-10.0, 10.0)}, rate=0.02)
+    per: dict[str, list[float]] = {"daemon": [], "plain": []}
+    rows: list[dict] = []
+    integrators: set[str] = set()
+
+    def daemon(r: int) -> None:
+        run_ = common.run_job(client, spec)
+        common.require_success(run_, "geometry, the scene's integrator")
+        integrators.add(run_.job.integrator_reason)
+        per["daemon"].append(common.per_iteration(run_.seconds))
+        rows.append({"job": "scene's integrator, daemon", "integrator": run_.job.integrator,
+                     "seconds_per_iteration": per["daemon"][-1], "round": r})
+
+    def mitsuba(r: int) -> None:
+        its = plain.run(loop, server.variant)
+        per["plain"].append(common.per_iteration([it.seconds for it in its]))
+        rows.append({"job": "scene's integrator, plain loop", "integrator": "direct_projective",
+                     "seconds_per_iteration": per["plain"][-1], "round": r})
+
+    common.alternate(1 if settings.quick else 3, daemon, mitsuba)
+    ratios = [d / p for d, p in zip(per["daemon"], per["plain"])]
+    ratio = common.median(ratios)
+    target = Target(f"seconds per step, the scene's direct_projective sppi 0, daemon / "
+                    f"Mitsuba's loop (<= {OWN_TARGET}x)",
+                    f"{ratio:.2f}x ({common.spread(per['daemon'], '{:.3f}')} s vs "
+                    f"{common.spread(per['plain'], '{:.3f}')} s)", ratio <= OWN_TARGET)
+    lines = [f"the scene's integrator: the quad at {OWN_RES}x{OWN_RES}, 8 spp, {iterations} "
+             f"iterations, direct_projective sppi 0; ratio per round "
+             + ", ".join(f"{r:.3f}" for r in ratios),
+             "the daemon's integrator: " + "; ".join(sorted(integrators))]
+    return target, rows, lines

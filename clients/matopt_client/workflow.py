@@ -218,6 +218,7 @@ class JobSettings:
     film_height: int | None = None
     image_error_every: int | None = None
     fit_exposure: bool | None = None
+    spp_from: dict[int, int] | None = None  # first iteration -> spp from there on
 
 
 def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: JobSettings,
@@ -254,6 +255,9 @@ def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: Job
     for name, value in plain.items():
         if value is not None:
             setattr(spec, name, value)
+    if s.spp_from is not None:
+        spec.spp_from.clear()
+        spec.spp_from.update(s.spp_from)
     return spec
 
 
@@ -275,7 +279,7 @@ def settings_of(spec: pb.JobSpec) -> JobSettings:
         min_error=optional("min_error"), seed=spec.seed or None,
         learning_rate=optional("learning_rate"), clamp=spec.clamp,
         film_height=spec.film_height or None, image_error_every=spec.image_error_every or None,
-        fit_exposure=spec.fit_exposure)
+        fit_exposure=spec.fit_exposure, spp_from=dict(sorted(spec.spp_from.items())) or None)
 
 
 def applied(spec: pb.JobSpec) -> str:
@@ -287,7 +291,9 @@ def applied(spec: pb.JobSpec) -> str:
              (("loss", s.loss), ("schedule", s.schedule), ("sensors", s.sensor_mode))
              if value]
     if s.iterations is not None:
-        words.append(f"{s.iterations} iterations" + (f" at {s.spp} spp" if s.spp else ""))
+        words.append(f"{s.iterations} iterations" + (f" at {s.spp} spp" if s.spp else "")
+                     + "".join(f", {n} spp from iteration {i}"
+                               for i, n in (s.spp_from or {}).items()))
     if s.min_error is not None:
         words.append(f"min error {number(s.min_error)}")
     if s.learning_rate is not None:

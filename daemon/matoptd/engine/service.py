@@ -219,7 +219,7 @@ class MitsubaEngine:
             records.append(api.IterationRecord(
                 s.iteration, opt.elapsed, s.loss,
                 {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error, s.gains))
+                s.errors, s.image_error, s.gains, s.spp))
             if s.done:
                 done, reason = True, s.stop_reason
                 break
