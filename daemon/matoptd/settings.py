@@ -31,8 +31,8 @@ SENSOR_MODES = ("accumulate", "step_per_sensor")
 
 # The engine's named choices: the special cases of its one optimization loop, each of which a
 # job may turn off (JobSettings.choices, NAME -> "off"; "all" stands for every one). Those a
-# setting asks for (exposure gains by fit_exposure, smoothness by a weight) follow that
-# setting and are not named here. The engine's registry (engine/choices) holds exactly these.
+# setting asks for (exposure gains by fit_exposure, smoothness by a weight, large steps by a
+# lambda) follow that setting and are not named here. The engine's registry (engine/choices) holds exactly these.
 CHOICES = {
     "filter_scaling": "a sensor's gaussian or tent filter scaled with a film resized by "
                       "resolution, so renders blur as the references made at the scene's size",
@@ -153,6 +153,8 @@ class JobSettings:
     # A value per name of CHOICES ("off" turns it off; ALL_CHOICES: every one, a name given
     # as well wins); a choice not named is on.
     choices: dict[str, str] = field(default_factory=dict)
+    # lambda of LargeSteps for selected vertex positions (engine/choices/large_steps); 0: off
+    large_steps: float = 0.0
     # A sample-count schedule: from iteration N on (key), renders take this spp (value).
     spp_from: dict[int, int] = field(default_factory=dict)
 

@@ -97,6 +97,14 @@ def _settings(spec: pb.JobSpec) -> dict:
                    "fit_exposure") if getattr(spec, name)})
     if spec.choices:
         given["choices"] = _choices(spec.choices)
+    if spec.large_steps_lambda:
+        if not (math.isfinite(spec.large_steps_lambda) and spec.large_steps_lambda > 0):
+            raise InvalidArgument(f"large_steps_lambda must be > 0, got "
+                                  f"{spec.large_steps_lambda}")
+        if not any(p.key.endswith(".vertex_positions") for p in spec.parameters):
+            raise InvalidArgument("large_steps_lambda steps vertex positions, and the job "
+                                  "selects none")
+        given["large_steps"] = spec.large_steps_lambda
     if spec.spp_from:
         given["spp_from"] = _spp_from(spec.spp_from, given.get("iterations",
                                                               JobSettings.iterations))
