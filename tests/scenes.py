@@ -364,3 +364,35 @@ def mesh_ply(verts, faces) -> bytes:
             "property list uchar int vertex_indices\nend_header\n")
     return (head + "".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts)
             + "".join(f"3 {a} {b} {c}\n" for a, b, c in faces)).encode()
+
+
+def views(count: int, distance: float = 4.0) -> list[str]:
+    """``count`` camera origins spread over a sphere of ``distance`` (a Fibonacci spiral)."""
+    import math
+    out = []
+    for k in range(count):
+        y = 1 - 2 * (k + 0.5) / count
+        r, phi = math.sqrt(1 - y * y), k * math.pi * (3 - math.sqrt(5))
+        out.append(f"{distance * r * math.cos(phi):.4f}, {distance * y:.4f}, "
+                   f"{distance * r * math.sin(phi):.4f}")
+    return out
+
+
+def mesh_in_views(res: int, count: int) -> str:
+    """A diffuse mesh (blob.ply, id ``blob``) seen by ``count`` cameras against a hidden
+    environment, with a directional light for shading, rendered by direct_projective with
+    sppi 0 as Mitsuba's own shape example sets it."""
+    sensors = "".join(camera(res, origin) for origin in views(count))
+    return f"""<scene version="3.0.0">
+    <integrator type="direct_projective"><integer name="sppi" value="0"/>
+        <boolean name="hide_emitters" value="true"/></integrator>
+    {sensors}
+    <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+    <emitter type="directional"><vector name="direction" value="-1, -2, -1.5"/>
+        <rgb name="irradiance" value="2"/></emitter>
+    <shape type="ply" id="blob">
+        <string name="filename" value="blob.ply"/>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.7"/></bsdf>
+    </shape>
+</scene>
+"""

@@ -28,6 +28,9 @@ LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_
           "multiscale_mse")
 SCHEDULES = ("cosine", "constant")
 SENSOR_MODES = ("accumulate", "step_per_sensor")
+# Mitsuba's differentiable integrators a job renders with: the scene's own when it is one of
+# them and can differentiate the job's parameters, else one chosen for it (engine/integrator).
+INTEGRATORS = ("prb", "prb_basic", "prbvolpath", "prb_projective", "direct_projective")
 
 # The engine's named choices: the special cases of its one optimization loop, each of which a
 # job may turn off (JobSettings.choices, NAME -> "off"; "all" stands for every one). Those a

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import mitsuba as mi
 
+from ..settings import INTEGRATORS
 from .scene import has_media
 
 DEFAULT_MAX_DEPTH = 8
@@ -27,6 +28,7 @@ PROJECTIVE = ("direct_projective", "prb_projective")
 _PYTHON = {"PRBIntegrator": "prb", "BasicPRBIntegrator": "prb_basic",
            "PRBVolpathIntegrator": "prbvolpath", "DirectProjectiveIntegrator": "direct_projective",
            "PathProjectiveIntegrator": "prb_projective"}
+assert set(_PYTHON.values()) == set(INTEGRATORS), "settings.INTEGRATORS"
 _NATIVE = {"PathIntegrator": "path", "VolumetricSimplePathIntegrator": "volpath",
            "VolumetricPathIntegrator": "volpath", "VolumetricMisPathIntegrator": "volpathmis",
            "DirectIntegrator": "direct"}
