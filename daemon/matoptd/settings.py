@@ -35,7 +35,8 @@ INTEGRATORS = ("prb", "prb_basic", "prbvolpath", "prb_projective", "direct_proje
 # The engine's named choices: the special cases of its one optimization loop, each of which a
 # job may turn off (JobSettings.choices, NAME -> "off"; "all" stands for every one). Those a
 # setting asks for (exposure gains by fit_exposure, smoothness by a weight, large steps by a
-# lambda) follow that setting and are not named here. The engine's registry (engine/choices) holds exactly these.
+# lambda) follow that setting and are not named here. The engine's registry (engine/choices)
+# holds exactly these.
 CHOICES = {
     "filter_scaling": "a sensor's gaussian or tent filter scaled with a film resized by "
                       "resolution, so renders blur as the references made at the scene's size",
