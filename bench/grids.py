@@ -28,18 +28,17 @@ import plain
 from common import Result, Settings, Target
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
-from scenes import camera, views, vol
+from scenes import cameras, vol
 
 RES, VIEWS, SPP, REF_SPP, ITERATIONS, SEEDS = 32, 4, 8, 128, 60, (0, 1, 2)
 START, SIDE = 0.002, 8
 
 
 def scene_xml() -> str:
-    sensors = "".join(camera(RES, origin) for origin in views(VIEWS))
     return f"""<scene version="3.0.0">
     <integrator type="volpath"><integer name="max_depth" value="6"/>
         <boolean name="hide_emitters" value="true"/></integrator>
-    {sensors}
+    {cameras(RES, VIEWS)}
     <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
     <shape type="cube" id="box">
         <transform name="to_world"><scale value="0.8"/></transform>

@@ -378,15 +378,19 @@ def views(count: int, distance: float = 4.0) -> list[str]:
     return out
 
 
+def cameras(res: int, count: int) -> str:
+    """``count`` cameras of ``res`` px around the origin (views())."""
+    return "".join(camera(res, origin) for origin in views(count))
+
+
 def mesh_in_views(res: int, count: int) -> str:
     """A diffuse mesh (blob.ply, id ``blob``) seen by ``count`` cameras against a hidden
     environment, with a directional light for shading, rendered by direct_projective with
     sppi 0 as Mitsuba's own shape example sets it."""
-    sensors = "".join(camera(res, origin) for origin in views(count))
     return f"""<scene version="3.0.0">
     <integrator type="direct_projective"><integer name="sppi" value="0"/>
         <boolean name="hide_emitters" value="true"/></integrator>
-    {sensors}
+    {cameras(res, count)}
     <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
     <emitter type="directional"><vector name="direction" value="-1, -2, -1.5"/>
         <rgb name="irradiance" value="2"/></emitter>
