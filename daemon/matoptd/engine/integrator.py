@@ -104,6 +104,9 @@ class Chosen:
 
 
 def choose(scene: mi.Scene, selected: list[str]) -> Chosen:
+    """The scene's integrator where it differentiates ``selected`` (media need prbvolpath,
+    moving edges a projective one); else the cheapest that does, with its depth, rr_depth and
+    hide_emitters, and ``changed`` saying what and why."""
     own = read(scene)
     if own.max_depth is not None:
         depth, origin = own.max_depth, "the scene's"
@@ -114,8 +117,8 @@ def choose(scene: mi.Scene, selected: list[str]) -> Chosen:
     geometry = [k for k in selected if k.endswith(_GEOMETRY)]
     kept = {k: v for k, v in own.props.items() if k != "max_depth"}
     carried = {k: v for k, v in kept.items() if k in ("rr_depth", "hide_emitters")}
-    scenes = f"the scene's {own.name or own.shown}" if own.name or own.shown else "a scene " \
-        "without an integrator (Mitsuba's path tracer)"
+    scenes = (f"the scene's {own.name or own.shown}" if own.name or own.shown
+              else "a scene without an integrator (Mitsuba's path tracer)")
 
     def keep(why: str) -> Chosen:
         spp = ", ".join(f"{k} {kept[k]}" for k in ("sppc", "sppp", "sppi") if k in kept)
