@@ -48,6 +48,7 @@ class PlainSpec:
     # further sensors' references (sensor index -> linear EXR): the loss is the mean over all
     more_references: dict[int, Path] = field(default_factory=dict)
     seconds: float = 0.0  # > 0: stop after the iteration that reaches this time
+    integrator_props: dict[str, object] = field(default_factory=dict)  # e.g. hide_emitters
 
 
 @dataclass
@@ -84,7 +85,8 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
 
     began, cpu = time.perf_counter(), time.process_time()
     scene = mi.load_file(str(spec.xml), **spec.overrides)
-    integrator = (mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth})
+    integrator = (mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth,
+                                **spec.integrator_props})
                   if spec.integrator else scene.integrator())
     references = {s: mi.TensorXf(np.array(mi.Bitmap(str(path)), dtype=np.float32)[..., :3])
                   for s, path in {0: spec.reference, **spec.more_references}.items()}

@@ -326,3 +326,77 @@ def cornell_with_truth(stubs, size: int, spp: int, keys) -> tuple[pb.Scene, dict
         pb.ListSceneParametersRequest(name=scene.name)).parameters if p.key in keys}
     ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=spp)).images[0]
     return scene, truth, ref
+
+
+def icosphere(level: int) -> tuple["np.ndarray", "np.ndarray"]:
+    """A unit sphere as an icosahedron subdivided ``level`` times: (vertices, faces), 10 * 4^l
+    + 2 vertices (162 at level 2, 642 at 3)."""
+    import numpy as np
+    t = (1 + 5 ** 0.5) / 2
+    verts = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t),
+             (0, -1, -t), (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    faces = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+             (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+             (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(v, float) / np.linalg.norm(v) for v in verts]
+    for _ in range(level):
+        middle: dict[tuple[int, int], int] = {}
+
+        def mid(a: int, b: int) -> int:
+            key = (min(a, b), max(a, b))
+            if key not in middle:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                middle[key] = len(verts) - 1
+            return middle[key]
+
+        faces = [f for a, b, c in faces for f in
+                 ((a, mid(a, b), mid(c, a)), (b, mid(b, c), mid(a, b)),
+                  (c, mid(c, a), mid(b, c)), (mid(a, b), mid(b, c), mid(c, a)))]
+    return np.array(verts, np.float32), np.array(faces, np.int64)
+
+
+def mesh_ply(verts, faces) -> bytes:
+    """An ASCII PLY of vertices and (0-based) triangles: Mitsuba keeps a PLY's vertex order
+    (an OBJ's follows the faces)."""
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(verts)}\nproperty float x\n"
+            f"property float y\nproperty float z\nelement face {len(faces)}\n"
+            "property list uchar int vertex_indices\nend_header\n")
+    return (head + "".join(f"{x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts)
+            + "".join(f"3 {a} {b} {c}\n" for a, b, c in faces)).encode()
+
+
+def views(count: int, distance: float = 4.0) -> list[str]:
+    """``count`` camera origins spread over a sphere of ``distance`` (a Fibonacci spiral)."""
+    import math
+    out = []
+    for k in range(count):
+        y = 1 - 2 * (k + 0.5) / count
+        r, phi = math.sqrt(1 - y * y), k * math.pi * (3 - math.sqrt(5))
+        out.append(f"{distance * r * math.cos(phi):.4f}, {distance * y:.4f}, "
+                   f"{distance * r * math.sin(phi):.4f}")
+    return out
+
+
+def cameras(res: int, count: int) -> str:
+    """``count`` cameras of ``res`` px around the origin (views())."""
+    return "".join(camera(res, origin) for origin in views(count))
+
+
+def mesh_in_views(res: int, count: int) -> str:
+    """A diffuse mesh (blob.ply, id ``blob``) seen by ``count`` cameras against a hidden
+    environment, with a directional light for shading, rendered by direct_projective with
+    sppi 0 as Mitsuba's own shape example sets it."""
+    return f"""<scene version="3.0.0">
+    <integrator type="direct_projective"><integer name="sppi" value="0"/>
+        <boolean name="hide_emitters" value="true"/></integrator>
+    {cameras(res, count)}
+    <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
+    <emitter type="directional"><vector name="direction" value="-1, -2, -1.5"/>
+        <rgb name="irradiance" value="2"/></emitter>
+    <shape type="ply" id="blob">
+        <string name="filename" value="blob.ply"/>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.7"/></bsdf>
+    </shape>
+</scene>
+"""

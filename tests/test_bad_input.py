@@ -109,6 +109,8 @@ def test_unknown_parameter_key_suggests_the_right_one(stubs, cornell):
 @pytest.mark.parametrize("field,value,message", [
     ("spp", 0, "spp must be >= 1, got 0"),
     ("iterations", -3, "iterations must be >= 1, got -3"),
+    ("spp_from", {0: 8}, "spp_from 0:8 begins at iteration 0, outside the job's 1 to"),
+    ("spp_from", {5: 0}, "spp_from 5:0 must take >= 1 spp"),
 ])
 def test_bad_numbers(stubs, cornell, field, value, message):
     scene, ref = cornell

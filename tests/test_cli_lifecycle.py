@@ -63,16 +63,19 @@ def test_session_across_restart(own_daemon, tmp_path):
     # A finished job, waited for with a progress display.
     done = matopt(d, "job", "start", scene, "--ref", str(ref), "--param", KEY,
                   "--init", f"{KEY}=0.8,0.8,0.8", "--iterations", "60", "--min-error", "0",
-                  "--wait", "--truth", f"{KEY}=0.2,0.4,0.6")
+                  "--spp-from", "40:32", "--wait", "--truth", f"{KEY}=0.2,0.4,0.6")
     job = done.stdout.strip().splitlines()[0]
     # What the daemon applied, its defaults included; how the job ended, each word once.
     applied = next(line for line in done.stderr.splitlines() if line.startswith(f"{job}: "))
-    assert "loss mse, schedule cosine, " in applied and "60 iterations at 16 spp" in applied
+    assert "loss mse, schedule cosine, " in applied
+    assert "60 iterations at 16 spp, 32 spp from iteration 40" in applied
     assert f"{job} SUCCEEDED after 60 iterations; best loss " in done.stderr
     status = as_json(d, "job", "status", job)
     assert status["state"] == "JOB_STATE_SUCCEEDED" and status["iteration"] == 60
-    errors = [r["errors"][0]["maxAbs"] for r in as_json(d, "job", "history", job)["iterations"]]
+    history = as_json(d, "job", "history", job)["iterations"]
+    errors = [r["errors"][0]["maxAbs"] for r in history]
     assert errors[0] == pytest.approx(0.6, abs=1e-5) and errors[-1] < 0.05  # 0.8 -> 0.2
+    assert [r["spp"] for r in history] == [16] * 40 + [32] * 20
 
     out = tmp_path / "export"
     matopt(d, "job", "export", job, "--out", str(out), "--which", "last")

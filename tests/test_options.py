@@ -41,6 +41,19 @@ def test_every_objective_recovers_the_wall(stubs, box, loss):
     assert got == pytest.approx(TRUTH, abs=0.05), enums.short_name(pb.Loss, loss)
 
 
+def test_a_sample_count_schedule_renders_each_phase_at_its_spp_and_records_it(stubs, box):
+    """--spp 1 --spp-from 2:256 --spp-from 4:4: the parameters barely move (a tiny rate), so
+    the loss is the render noise's, which falls with spp: the 256-spp phase's is far lower."""
+    scene, ref = box
+    done, _ = run(stubs, scene, [pb.Reference(blob=ref.exr_blob)], iterations=5, spp=1,
+                  spp_from={2: 256, 4: 4}, learning_rate=1e-6)
+    assert dict(done.spec.spp_from) == {2: 256, 4: 4}
+    history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=done.name)).iterations
+    assert [r.spp for r in history] == [1, 1, 256, 256, 4]
+    loss = [r.loss for r in history]
+    assert max(loss[2:4]) < min(loss[:2]) / 4 and max(loss[2:4]) < loss[4], loss
+
+
 def test_brightness_independent_mse_recovers_colour_against_a_lit_background(stubs):
     """Normalizing by the image mean keeps the object's colour relative to what surrounds it.
     (In the Cornell box the light's pixels, ~18 at 4 spp, dominate that mean and its noise.)"""

@@ -218,6 +218,8 @@ class JobSettings:
     film_height: int | None = None
     image_error_every: int | None = None
     fit_exposure: bool | None = None
+    spp_from: dict[int, int] | None = None  # first iteration -> spp from there on
+    large_steps_lambda: float | None = None  # LargeSteps for vertex positions
 
 
 def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: JobSettings,
@@ -250,10 +252,13 @@ def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: Job
     plain = {"iterations": s.iterations, "spp": s.spp, "min_error": s.min_error,
              "seed": s.seed, "learning_rate": s.learning_rate, "clamp": s.clamp,
              "film_height": s.film_height, "image_error_every": s.image_error_every,
-             "fit_exposure": s.fit_exposure}
+             "fit_exposure": s.fit_exposure, "large_steps_lambda": s.large_steps_lambda}
     for name, value in plain.items():
         if value is not None:
             setattr(spec, name, value)
+    if s.spp_from is not None:
+        spec.spp_from.clear()
+        spec.spp_from.update(s.spp_from)
     return spec
 
 
@@ -275,7 +280,8 @@ def settings_of(spec: pb.JobSpec) -> JobSettings:
         min_error=optional("min_error"), seed=spec.seed or None,
         learning_rate=optional("learning_rate"), clamp=spec.clamp,
         film_height=spec.film_height or None, image_error_every=spec.image_error_every or None,
-        fit_exposure=spec.fit_exposure)
+        fit_exposure=spec.fit_exposure, spp_from=dict(sorted(spec.spp_from.items())) or None,
+        large_steps_lambda=spec.large_steps_lambda or None)
 
 
 def applied(spec: pb.JobSpec) -> str:
@@ -287,14 +293,18 @@ def applied(spec: pb.JobSpec) -> str:
              (("loss", s.loss), ("schedule", s.schedule), ("sensors", s.sensor_mode))
              if value]
     if s.iterations is not None:
-        words.append(f"{s.iterations} iterations" + (f" at {s.spp} spp" if s.spp else ""))
+        words.append(f"{s.iterations} iterations" + (f" at {s.spp} spp" if s.spp else "")
+                     + "".join(f", {n} spp from iteration {i}"
+                               for i, n in (s.spp_from or {}).items()))
     if s.min_error is not None:
         words.append(f"min error {number(s.min_error)}")
     if s.learning_rate is not None:
         words.append(f"learning rate {number(s.learning_rate)}")
     words += [f"seed {spec.seed}"] + (["clamped to [0, 1]"] if s.clamp else []) \
         + ([f"film height {s.film_height} px"] if s.film_height else []) \
-        + (["exposure fitted"] if s.fit_exposure else [])
+        + (["exposure fitted"] if s.fit_exposure else []) \
+        + ([f"large steps, lambda {number(s.large_steps_lambda)}"] if s.large_steps_lambda
+           else [])
     return ", ".join(words)
 
 

@@ -177,6 +177,7 @@ class IterationRecord:
     errors: dict[str, ParameterError] = field(default_factory=dict)  # with ground truth
     image_error: float | None = None
     gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB (fit_exposure)
+    spp: int = 0  # what its renders took (0: kept before it was recorded)
 
 
 @dataclass

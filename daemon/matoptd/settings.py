@@ -28,11 +28,15 @@ LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_
           "multiscale_mse")
 SCHEDULES = ("cosine", "constant")
 SENSOR_MODES = ("accumulate", "step_per_sensor")
+# Mitsuba's differentiable integrators a job renders with: the scene's own when it is one of
+# them and can differentiate the job's parameters, else one chosen for it (engine/integrator).
+INTEGRATORS = ("prb", "prb_basic", "prbvolpath", "prb_projective", "direct_projective")
 
 # The engine's named choices: the special cases of its one optimization loop, each of which a
 # job may turn off (JobSettings.choices, NAME -> "off"; "all" stands for every one). Those a
-# setting asks for (exposure gains by fit_exposure, smoothness by a weight) follow that
-# setting and are not named here. The engine's registry (engine/choices) holds exactly these.
+# setting asks for (exposure gains by fit_exposure, smoothness by a weight, large steps by a
+# lambda) follow that setting and are not named here. The engine's registry (engine/choices)
+# holds exactly these.
 CHOICES = {
     "filter_scaling": "a sensor's gaussian or tent filter scaled with a film resized by "
                       "resolution, so renders blur as the references made at the scene's size",
@@ -43,7 +47,8 @@ CHOICES = {
                  "rate is a relative step",
     "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
                        "(0.0318) while Adam steps on below it",
-    "multires": "textures and grids optimized coarse to fine",
+    "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "
+                "upsampling, optionally :LEVELS, e.g. linear:3, sets how)",
     "eta_differences": "a dielectric's eta differentiated by central differences of the "
                        "images while its surface is near-specular",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
@@ -51,6 +56,24 @@ CHOICES = {
 }
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
+UPSAMPLING = ("nearest", "linear")
+
+
+def coarse_to_fine(value: str) -> tuple[str, int]:
+    """multires's value as (upsampling, levels): "on" or one of UPSAMPLING, optionally with
+    ":LEVELS" (the finest LEVELS of the halvings, the full resolution among them; 0: as many
+    as the size allows). ValueError saying what it may be."""
+    mode, _, count = value.partition(":")
+    mode = UPSAMPLING[0] if mode == "on" else mode
+    if mode not in UPSAMPLING or (count and not (count.isdigit() and int(count) >= 1)):
+        raise ValueError(f"choice 'multires' cannot be '{value}': give on, off, "
+                         f"{' or '.join(UPSAMPLING)}, optionally with :LEVELS (a whole number "
+                         ">= 1, e.g. linear:3)")
+    return mode, int(count or 0)
+
+
+# Choices whose value says more than on/off: name -> its parser (ValueError for a bad one).
+CHOICE_OPTIONS = {"multires": coarse_to_fine}
 
 
 @dataclass(frozen=True)
@@ -134,9 +157,22 @@ class JobSettings:
     # A value per name of CHOICES ("off" turns it off; ALL_CHOICES: every one, a name given
     # as well wins); a choice not named is on.
     choices: dict[str, str] = field(default_factory=dict)
+    # lambda of LargeSteps for selected vertex positions (engine/choices/large_steps); 0: off
+    large_steps: float = 0.0
+    # A sample-count schedule: from iteration N on (key), renders take this spp (value).
+    spp_from: dict[int, int] = field(default_factory=dict)
+
+    def spp_at(self, iteration: int) -> int:
+        """The spp of iteration i's renders: that of the latest phase begun by i."""
+        begun = [n for n in self.spp_from if n <= iteration]
+        return self.spp_from[max(begun)] if begun else self.spp
 
     def choice_on(self, name: str) -> bool:
-        return self.choices.get(name, self.choices.get(ALL_CHOICES, "on")) != "off"
+        return self.choice_value(name) != "off"
+
+    def choice_value(self, name: str) -> str:
+        """The value given for the choice (by name, else by ALL_CHOICES), "on" if none."""
+        return self.choices.get(name, self.choices.get(ALL_CHOICES, "on"))
 
 
 def read_values(values: Values, read: Callable[[str], bytes], what: str) -> np.ndarray:

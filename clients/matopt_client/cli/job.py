@@ -12,7 +12,8 @@ from matopt_client import client as mc
 from matopt_client import workflow
 from matopt_client.cli.output import (best, emit_json, fields, json_option, note, number,
                                 parameter_error, table, timestamp, uploading, warn)
-from matopt_client.cli.params import JOB, SCENE, LearningRate, Range, ReferenceImage, Values
+from matopt_client.cli.params import (JOB, SCENE, LearningRate, Range, ReferenceImage, SppPhase,
+                                      Values)
 from matopt_client.cli.progress import JobProgress, describe, describe_state, follow, outcome
 from matopt_client.cli.session import Group, connected
 from matopt_client.export import WHICH, export_job
@@ -177,6 +178,13 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
                    "[daemon default: cosine]")
 @click.option("--iterations", type=int, help="optimization steps [daemon default: 100]")
 @click.option("--spp", type=int, help="samples per pixel of each step [daemon default: 16]")
+@click.option("--spp-from", "spp_from", multiple=True, type=SppPhase(), metavar="ITER:SPP",
+              help="from iteration ITER on, SPP samples per pixel instead of --spp, e.g. "
+                   "'--spp 8 --spp-from 16:64' (repeatable; 'matopt job history' shows each "
+                   "iteration's)")
+@click.option("--large-steps", "large_steps", type=float, metavar="LAMBDA",
+              help="step vertex positions as LargeSteps (Nicolet et al. 2021) with this "
+                   "lambda, e.g. 19 (more for finer meshes), Adam in its uniform mode")
 @click.option("--min-error", type=float,
               help="stop once the loss is below this [daemon default: 0, off]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")
@@ -197,6 +205,7 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
               default="best", show_default=True, help="which result of --from")
 @click.option("--choice", "choices", multiple=True, metavar="NAME=on|off",
               help="turn one of the engine's choices off (or on), e.g. eta_differences=off; "
+                   "multires also takes nearest or linear, optionally :LEVELS (linear:3); "
                    "'matopt job status' lists those in force, with why and cost (repeatable)")
 @click.option("--preset", type=click.Choice(["plain"]),
               help=f"plain: Mitsuba's plain Adam loop (no engine choices, constant schedule, "
@@ -205,7 +214,8 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
 @json_option
 def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits, smooth,
           loss: str | None, schedule: str | None,
-          iterations: int | None, spp: int | None, min_error: float | None, seed: int | None,
+          iterations: int | None, spp: int | None, spp_from, large_steps: float | None,
+          min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
           image_error_every: int | None, from_job: str | None, from_which: str,
           choices, preset: str | None, wait: bool, as_json: bool) -> None:
@@ -225,7 +235,8 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
         min_error=min_error, seed=seed,
         learning_rate=next((rate for key, rate in rates if key is None), None),
         clamp=clamp or None, film_height=resolution, image_error_every=image_error_every,
-        fit_exposure=fit_exposure or None)
+        fit_exposure=fit_exposure or None, spp_from=dict(spp_from) or None,
+        large_steps_lambda=large_steps)
     parameters = parameter_specs(keys, rates, ranges, inits, smooth)
     truth = [pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "") for t in truths]
     references = reference_files(refs, masks)
@@ -466,8 +477,8 @@ def history(name: str, as_json: bool) -> None:
         emit_json(response)
         return
     keys = list(dict.fromkeys(e.key for r in response.iterations for e in r.errors))
-    table(["ITERATION", "SECONDS", "LOSS"] + [f"ERROR {k}" for k in keys],
-          [[r.iteration, f"{r.seconds:.2f}", number(r.loss)]
+    table(["ITERATION", "SECONDS", "SPP", "LOSS"] + [f"ERROR {k}" for k in keys],
+          [[r.iteration, f"{r.seconds:.2f}", r.spp or "", number(r.loss)]
            + [next((parameter_error(e) for e in r.errors if e.key == k), "") for k in keys]
            for r in response.iterations])
 

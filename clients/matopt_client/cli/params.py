@@ -131,3 +131,18 @@ class ReferenceImage(click.ParamType):
         return None, text
 
 
+
+
+class SppPhase(click.ParamType):
+    """``ITER:SPP``: from iteration ITER on, SPP samples per pixel (JobSpec.spp_from)."""
+
+    name = "ITER:SPP"
+
+    def convert(self, value: Any, param, ctx) -> tuple[int, int]:
+        if isinstance(value, tuple):
+            return value
+        first, _, spp = str(value).partition(":")
+        try:
+            return int(first), int(spp)
+        except ValueError:
+            self.fail(f"'{value}' is not ITER:SPP (two whole numbers, e.g. 16:64)", param, ctx)

@@ -2,7 +2,8 @@
 
 A texture (H, W, C) or grid (Z, Y, X, C) of many texels is optimized first at a coarse
 resolution, each coarse texel standing for a block of the full one (nearest upsampling, by
-a gather, so gradients sum over the block), then at twice that, up to the full resolution
+a gather, so gradients sum over the block; or linear, a weighted sum of the 2^d nearest
+coarse texels, which leaves no block edges), then at twice that, up to the full resolution
 by half the iterations. Every coarse texel is seen by many pixels, so its gradient carries
 far less noise than a single texel's: the low frequencies of the pattern (and its average
 tint, which scalars such as spec_trans would otherwise absorb) settle first, the detail
@@ -20,13 +21,13 @@ import numpy as np
 MIN_SIDE = 4
 
 
-def levels(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
+def levels(shape: tuple[int, ...], count: int = 0) -> list[tuple[int, ...]]:
     """The shapes from coarsest to full, or [shape] when it is too small (or not a texture or
-    grid). The last axis (channels) is kept."""
+    grid): the finest ``count`` of them (0: all). The last axis (channels) is kept."""
     if len(shape) not in (3, 4):
         return [tuple(shape)]
     out = [tuple(shape)]
-    while min(out[-1][:-1]) >= 2 * MIN_SIDE:
+    while min(out[-1][:-1]) >= 2 * MIN_SIDE and (count == 0 or len(out) < count):
         out.append(tuple(math.ceil(s / 2) for s in out[-1][:-1]) + (shape[-1],))
     return out[::-1]
 
@@ -48,9 +49,45 @@ def index_map(fine: tuple[int, ...], coarse: tuple[int, ...]) -> np.ndarray:
     return np.ravel_multi_index(grids, coarse).ravel().astype(np.uint32)
 
 
-def upsample(latent: mi.TensorXf, fine: tuple[int, ...], index: mi.UInt32) -> mi.TensorXf:
-    """The coarse tensor blown up to ``fine`` (differentiable)."""
-    return mi.TensorXf(dr.gather(mi.Float, latent.array, index), fine)
+Taps = list[tuple[np.ndarray, np.ndarray | None]]  # (coarse index, weight) per fine element
+
+
+def taps(fine: tuple[int, ...], coarse: tuple[int, ...], mode: str) -> Taps:
+    """How each element of ``fine`` is made from ``coarse``: ``nearest``, the one element
+    whose block contains it (weight None: 1); ``linear``, the 2^d nearest texel centres
+    (bilinear, trilinear), their weights summing to 1, clamped at the border."""
+    if mode == "nearest":
+        return [(index_map(fine, coarse), None)]
+    per_axis = []
+    for f, c in zip(fine[:-1], coarse[:-1]):
+        x = np.clip((np.arange(f) + 0.5) * c / f - 0.5, 0, c - 1)
+        lo = np.floor(x).astype(np.int64)
+        per_axis.append(((lo, np.minimum(lo + 1, c - 1)), (1 - (x - lo), x - lo)))
+    out: Taps = []
+    for corner in np.ndindex(*(2,) * len(per_axis)):
+        index = [axis[0][b] for axis, b in zip(per_axis, corner)]
+        weight = [axis[1][b] for axis, b in zip(per_axis, corner)]
+        grids = np.meshgrid(*index, np.arange(fine[-1]), indexing="ij")
+        weights = np.meshgrid(*weight, np.ones(fine[-1]), indexing="ij")
+        out.append((np.ravel_multi_index(grids, coarse).ravel().astype(np.uint32),
+                    np.prod(weights, axis=0).ravel().astype(np.float32)))
+    return out
+
+
+def apply(values: np.ndarray, made: Taps) -> np.ndarray:
+    """The fine array ``made`` from the coarse ``values`` (flat, numpy)."""
+    values = np.asarray(values, np.float32).ravel()
+    return sum(values[i] if w is None else w * values[i] for i, w in made)
+
+
+def upsample(latent: mi.TensorXf, fine: tuple[int, ...], made) -> mi.TensorXf:
+    """The coarse tensor blown up to ``fine`` (differentiable); ``made``: taps() as Dr.Jit
+    arrays."""
+    out = 0
+    for index, weight in made:
+        gathered = dr.gather(mi.Float, latent.array, index)
+        out = out + (gathered if weight is None else weight * gathered)
+    return mi.TensorXf(out, fine)
 
 
 def downsample(values: np.ndarray, fine: tuple[int, ...], coarse: tuple[int, ...]) -> np.ndarray:

@@ -83,6 +83,7 @@ class Step:
     errors: dict[str, ParameterError] = field(default_factory=dict)
     image_error: float | None = None
     gains: dict[int, np.ndarray] = field(default_factory=dict)  # sensor -> RGB gain
+    spp: int = 0                   # what its renders took
 
 
 @dataclass
@@ -177,7 +178,7 @@ class Optimization:
             began = time.perf_counter()
             c.begin(self)
             c.setup_seconds += time.perf_counter() - began
-        self.integrator = integrator.make(self.chosen.name, self.chosen.max_depth)
+        self.integrator = integrator.make(self.chosen)
         self.integrator_reason = self.chosen.reason()
         self.initial = self.theta()[0]
 
@@ -270,6 +271,7 @@ class Optimization:
     def step(self) -> Step:
         start = time.perf_counter()
         i, s = self.iteration, self.settings
+        self.spp = s.spp_at(i)
         if any(self._call("before_render", i)):
             self._apply()
         last = i + 1 >= s.iterations
@@ -301,7 +303,7 @@ class Optimization:
                    "min_error" if reached else "iterations" if last else "",
                    {k: parameter_error(theta[k], t, self.channels(k))
                     for k, t in self.truth.items() if k in theta},
-                   gains=gains)
+                   gains=gains, spp=self.spp)
         if s.image_error_every and (i % s.image_error_every == 0 or out.done):
             out.image_error = self.image_error(theta, gains)  # off the clock
         return out

@@ -189,7 +189,8 @@ class MitsubaEngine:
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
-        opt.notes = notes + opt.choice_notes() + medium_notes(loaded, keys) + [
+        changed = [opt.chosen.changed] if opt.chosen.changed else []  # the scene's integrator
+        opt.notes = notes + changed + opt.choice_notes() + medium_notes(loaded, keys) + [
             f"gradients for: {', '.join(keys)}",
             f"sensors rendered: {', '.join(map(str, opt.references))}"
             + (f" (not rendered: {', '.join(map(str, skipped))})" if skipped else "")]
@@ -218,7 +219,7 @@ class MitsubaEngine:
             records.append(api.IterationRecord(
                 s.iteration, opt.elapsed, s.loss,
                 {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error, s.gains))
+                s.errors, s.image_error, s.gains, s.spp))
             if s.done:
                 done, reason = True, s.stop_reason
                 break

@@ -132,7 +132,9 @@ def job_estimate(settings: JobSettings, films: dict[int, tuple[int, int]],
         why = (f"film_height {settings.film_height}" if settings.film_height else
                f"the scene's film height {height}")
         why += f" and reference '{ref.name}' ({header.width}x{header.height} px)"
-        out.renders.append(Render(ref.sensor, width, height, settings.spp, "spp", why,
+        spp, field = max([(settings.spp, "spp"), *((n, f"spp_from {i}:{n}")
+                                                    for i, n in settings.spp_from.items())])
+        out.renders.append(Render(ref.sensor, width, height, spp, field, why,
                                   2 if settings.loss == "dual_buffer" else 1))
         if settings.image_error_every:
             out.renders.append(Render(ref.sensor, width, height, settings.image_error_spp,

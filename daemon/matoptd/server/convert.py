@@ -141,7 +141,8 @@ def spec_to_pb(job: JobRecord) -> pb.JobSpec:
         sensor_mode=enums.parse(pb.SensorMode, s.sensor_mode), clamp=s.clamp,
         film_height=s.film_height, ground_truth=values_to_pb(s.truth, {}),
         image_error_every=s.image_error_every, image_error_spp=s.image_error_spp,
-        fit_exposure=s.fit_exposure, choices=s.choices)
+        fit_exposure=s.fit_exposure, choices=s.choices, spp_from=s.spp_from,
+        large_steps_lambda=s.large_steps)
     if s.learning_rate is not None:
         spec.learning_rate = s.learning_rate
     return spec
@@ -202,7 +203,7 @@ def iteration_to_pb(r: api.IterationRecord, job: JobRecord) -> pb.IterationRecor
         errors=[pb.ParameterError(key=k, max_abs=e.max_abs, rmse=e.rmse, relative=e.relative,
                                   psnr=e.psnr, correlation=e.correlation)
                 for k, e in r.errors.items()],
-        gains=gains_to_pb(r.gains, reference_names(job)))
+        gains=gains_to_pb(r.gains, reference_names(job)), spp=r.spp)
     if r.image_error is not None:
         out.image_error = r.image_error
     return out

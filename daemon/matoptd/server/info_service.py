@@ -7,6 +7,7 @@ from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
+from ..settings import INTEGRATORS
 from .backend import Backend
 from .convert import worker_to_pb
 from .interceptors import caller
@@ -25,7 +26,7 @@ class ServerService(rpc.ServerServiceServicer):
             workers=workers, losses=enums.short_names(pb.Loss),
             schedules=enums.short_names(pb.Schedule),
             sensor_modes=enums.short_names(pb.SensorMode),
-            integrators=["prb", "prbvolpath", "prb_projective", "direct_projective"],
+            integrators=list(INTEGRATORS),
             capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
                           "checkpoint-resume", "watch", "render", "multi-user", "restart",
                           "ground-truth-errors", "image-error", "optimized-scene-export",

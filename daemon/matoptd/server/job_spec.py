@@ -16,8 +16,8 @@ from .. import range_notes
 from ..engine_api import ParameterInfo
 from ..errors import FailedPrecondition, InvalidArgument
 from ..records import ResultRecord, SceneRecord
-from ..settings import (ALL_CHOICES, CHOICE_VALUES, CHOICES, JobSettings, ParameterSetting,
-                        ReferenceInput, SceneInput, Values, read_values)
+from ..settings import (ALL_CHOICES, CHOICE_OPTIONS, CHOICE_VALUES, CHOICES, JobSettings,
+                        ParameterSetting, ReferenceInput, SceneInput, Values, read_values)
 from .convert import given_values
 
 PARAMETER_KINDS_SMOOTHED = ("texture", "volume_grid")
@@ -97,7 +97,29 @@ def _settings(spec: pb.JobSpec) -> dict:
                    "fit_exposure") if getattr(spec, name)})
     if spec.choices:
         given["choices"] = _choices(spec.choices)
+    if spec.large_steps_lambda:
+        if not (math.isfinite(spec.large_steps_lambda) and spec.large_steps_lambda > 0):
+            raise InvalidArgument(f"large_steps_lambda must be > 0, got "
+                                  f"{spec.large_steps_lambda}")
+        if not any(p.key.endswith(".vertex_positions") for p in spec.parameters):
+            raise InvalidArgument("large_steps_lambda steps vertex positions, and the job "
+                                  "selects none")
+        given["large_steps"] = spec.large_steps_lambda
+    if spec.spp_from:
+        given["spp_from"] = _spp_from(spec.spp_from, given.get("iterations",
+                                                              JobSettings.iterations))
     return given
+
+
+def _spp_from(phases, iterations: int) -> dict[int, int]:
+    """JobSpec.spp_from: phases that begin within the job, at 1 spp or more."""
+    for first, spp in sorted(phases.items()):
+        if not 1 <= first < iterations:
+            raise InvalidArgument(f"spp_from {first}:{spp} begins at iteration {first}, "
+                                  f"outside the job's 1 to {iterations - 1}")
+        if spp < 1:
+            raise InvalidArgument(f"spp_from {first}:{spp} must take >= 1 spp")
+    return dict(sorted(phases.items()))
 
 
 def _choices(choices) -> dict[str, str]:
@@ -109,7 +131,12 @@ def _choices(choices) -> dict[str, str]:
             raise InvalidArgument(f"unknown choice '{name}'"
                                   + (f" (did you mean '{close[0]}'?)" if close else "")
                                   + f"; the choices are {', '.join(names)}")
-        if value not in CHOICE_VALUES:
+        if name in CHOICE_OPTIONS and value != "off":
+            try:
+                CHOICE_OPTIONS[name](value)
+            except ValueError as exc:
+                raise InvalidArgument(str(exc)) from None
+        elif value not in CHOICE_VALUES:
             raise InvalidArgument(f"choice '{name}' cannot be '{value}': give "
                                   f"{' or '.join(CHOICE_VALUES)}")
     return dict(choices)

@@ -253,7 +253,7 @@ def iteration_record(r: pb.IterationRecord) -> IterationRecord:
         {e.key: ParameterError(e.max_abs, e.rmse, e.relative, e.psnr, list(e.correlation))
          for e in r.errors},
         r.image_error if r.HasField("image_error") else None,
-        {g.sensor: np.asarray(g.rgb, dtype=np.float32) for g in r.gains})
+        {g.sensor: np.asarray(g.rgb, dtype=np.float32) for g in r.gains}, r.spp)
 
 
 def _image(i: pb.Image) -> ImageRef:

@@ -91,10 +91,8 @@ class Depth(Choice):
 def measure(loop, depth: int, least: int = 0) -> tuple[int, float, float]:
     """(the depth to render at, the mean square change its cut makes, the noise level it was
     compared with), the scene as it is now; candidates from ``least`` on."""
-    name = loop.chosen.name
-
     def renders(d: int, seed: int) -> dict[int, np.ndarray]:
-        it = integrator.make(name, d)
+        it = integrator.make(loop.chosen, d)
         with dr.suspend_grad():
             return {s: np.array(mi.render(loop.scene, loop.params, sensor=s, spp=loop.spp,
                                           integrator=it, seed=seed), np.float32)[..., :3]
