@@ -14,6 +14,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 import uuid
 import xml.etree.ElementTree as ET
@@ -330,6 +331,39 @@ def run_job(client: mc.Client, spec: pb.JobSpec,
         final = client.jobs.GetJob(pb.GetJobRequest(name=name))
     history = list(client.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations)
     return JobRun(final, history, wall, arrivals, first, cpu)
+
+
+@dataclass
+class Together:
+    """Jobs started at once and followed to their end: their runs, the wall clock from the
+    first CreateJob to the last end, and the daemon's CPU seconds over it."""
+
+    runs: list[JobRun]
+    seconds: float
+    cpu: Cpu  # spent by the server and the workers
+
+    @property
+    def iterations(self) -> int:
+        return sum(len(r.history) for r in self.runs)
+
+
+def run_together(server: Daemon, jobs: Sequence[tuple[mc.Client, pb.JobSpec]],
+                 what: str) -> Together:
+    """Each (client, spec) started in a thread of its own at once; every job must succeed."""
+    runs: list[JobRun] = []
+    cpu0, t0 = server.cpu(), time.perf_counter()
+    threads = [threading.Thread(target=lambda c=c, s=s: runs.append(run_job(c, s)),
+                                daemon=True) for c, s in jobs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall, cpu1 = time.perf_counter() - t0, server.cpu()
+    if len(runs) != len(threads):
+        raise RuntimeError(f"{what}: a job's watch failed")
+    for r in runs:
+        require_success(r, what)
+    return Together(runs, wall, Cpu(cpu1.server - cpu0.server, cpu1.workers - cpu0.workers))
 
 
 def require_success(run: JobRun, what: str) -> None:

@@ -14,7 +14,6 @@ nothing there. A warm-up round on each daemon compiles every worker's kernels fi
 
 from __future__ import annotations
 
-import threading
 import time
 
 import common
@@ -30,28 +29,16 @@ NEEDS_DAEMON = False  # starts its own two daemons
 
 def burst(server: common.Daemon, specs: dict[str, pb.JobSpec], what: str) -> dict:
     """Every user's jobs started at once; the figures of the round."""
-    runs: list[common.JobRun] = []
     clients = {u: server.connect(u) for u in USERS}
-    cpu0, t0 = server.cpu(), time.perf_counter()
-    threads = [threading.Thread(target=lambda u=u: runs.append(common.run_job(clients[u],
-                                                                             specs[u])),
-                                daemon=True)
-               for u in USERS for _ in range(JOBS_PER_USER)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    wall, cpu1 = time.perf_counter() - t0, server.cpu()
-    for c in clients.values():
-        c.close()
-    if len(runs) != len(threads):
-        raise RuntimeError(f"gpu_packing {what}: a job's watch failed")
-    for r in runs:
-        common.require_success(r, f"gpu_packing {what}")
-    iterations = sum(len(r.history) for r in runs)
-    return {"side": what, "seconds": wall, "iterations": iterations,
-            "iterations_per_second": iterations / wall,
-            "worker_cpu_seconds_per_iteration": (cpu1.workers - cpu0.workers) / iterations}
+    try:
+        done = common.run_together(server, [(clients[u], specs[u]) for u in USERS
+                                            for _ in range(JOBS_PER_USER)], f"gpu_packing {what}")
+    finally:
+        for c in clients.values():
+            c.close()
+    return {"side": what, "seconds": done.seconds, "iterations": done.iterations,
+            "iterations_per_second": done.iterations / done.seconds,
+            "worker_cpu_seconds_per_iteration": done.cpu.workers / done.iterations}
 
 
 def run(settings: Settings, _: object = None) -> Result:

@@ -15,7 +15,6 @@ the daemon's kernel cache on disk). No target: this says which configuration to 
 
 from __future__ import annotations
 
-import threading
 import time
 
 import common
@@ -27,26 +26,14 @@ RES, SPP = 64, 4
 
 def pair(server: common.Daemon, spec, what: str) -> dict:
     """Both jobs started at once; the figures of the pair."""
-    runs: list[common.JobRun] = []
-    cpu0, t0 = server.cpu(), time.perf_counter()
-    threads = [threading.Thread(target=lambda: runs.append(common.run_job(server.client, spec)),
-                                daemon=True) for _ in range(2)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    wall, cpu1 = time.perf_counter() - t0, server.cpu()
-    if len(runs) != 2:
-        raise RuntimeError(f"two_workers {what}: a job's watch failed")
-    for r in runs:
-        common.require_success(r, f"two_workers {what}")
-    iterations = sum(len(r.history) for r in runs)
-    return {"workers": what, "seconds": wall, "iterations": iterations,
-            "iterations_per_second": iterations / wall,
+    done = common.run_together(server, [(server.client, spec)] * 2, f"two_workers {what}")
+    n = done.iterations
+    return {"workers": what, "seconds": done.seconds, "iterations": n,
+            "iterations_per_second": n / done.seconds,
             "job_seconds_per_iteration": common.median([common.per_iteration(r.seconds)
-                                                         for r in runs]),
-            "worker_cpu_seconds_per_iteration": (cpu1.workers - cpu0.workers) / iterations,
-            "server_cpu_seconds_per_iteration": (cpu1.server - cpu0.server) / iterations}
+                                                         for r in done.runs]),
+            "worker_cpu_seconds_per_iteration": done.cpu.workers / n,
+            "server_cpu_seconds_per_iteration": done.cpu.server / n}
 
 
 def run(settings: Settings, server: common.Daemon) -> Result:
