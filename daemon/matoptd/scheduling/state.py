@@ -92,10 +92,11 @@ class State:
 
     def record(self, name: str, owner: str | None = None) -> JobRecord:
         """The job's record: the scheduler's while it holds the job (the one that changes),
-        else the store's. With ``owner``, another user's job is NOT_FOUND, as if absent."""
+        else a copy of the store's (the scheduler may take it up and change it). With
+        ``owner``, another user's job is NOT_FOUND, as if absent."""
         job = self.scheduler.jobs.get(name)
         if job is None:
-            return self.store.get_job(name, owner)
+            return self.store.get_job(name, owner).snapshot()
         if owner is not None and job.user != owner:
             raise NotFound(f"job '{name}' not found")
         return job.record

@@ -6,6 +6,8 @@ only module that builds the API's messages from them; requests become plain data
 
 from __future__ import annotations
 
+import collections
+
 import numpy as np
 from google.protobuf.timestamp_pb2 import Timestamp
 
@@ -226,6 +228,34 @@ def event_to_pb(event: JobRecord | api.IterationRecord, job: JobRecord) -> pb.Jo
     if isinstance(event, JobRecord):
         return pb.JobEvent(job=job_to_pb(event))
     return pb.JobEvent(iteration=iteration_to_pb(event, job))
+
+
+class Converted:
+    """The message each record or event became, by the object's identity: the store hands
+    every status call the same record until the job changes, and the events hand every
+    watcher the same objects, so hundreds of calls a second cost one conversion per change.
+    The messages are shared: nothing changes them once built."""
+
+    def __init__(self, kept: int = 4096) -> None:
+        self.kept = kept
+        # (kind, id) -> (the object, kept so that its id is not reused, and its message)
+        self._built: collections.OrderedDict[tuple[str, int], tuple[object, object]] = \
+            collections.OrderedDict()
+
+    def job(self, job: JobRecord) -> pb.Job:
+        return self._get("job", job, lambda: job_to_pb(job))
+
+    def event(self, event: JobRecord | api.IterationRecord, job: JobRecord) -> pb.JobEvent:
+        return self._get("event", event, lambda: event_to_pb(event, job))
+
+    def _get(self, kind: str, source: object, build):
+        key = (kind, id(source))
+        built = self._built.get(key)
+        if built is None or built[0] is not source:
+            built = self._built[key] = (source, build())
+            if len(self._built) > self.kept:
+                self._built.popitem(last=False)
+        return built[1]
 
 
 # -- workers ---------------------------------------------------------------------------------

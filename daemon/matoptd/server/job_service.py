@@ -37,6 +37,7 @@ class JobService(rpc.JobServiceServicer):
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
         self.store, self.control = backend.store, backend.control
+        self.converted = convert.Converted()
 
     async def CreateJob(self, request, context):
         user = caller()
@@ -90,7 +91,7 @@ class JobService(rpc.JobServiceServicer):
         return job_spec.StartFrom(source, chosen, result)
 
     async def GetJob(self, request, context):
-        return convert.job_to_pb(self.store.get_job(resource("jobs", request.name), caller()))
+        return self.converted.job(self.store.get_job(resource("jobs", request.name), caller()))
 
     async def ListJobs(self, request, context):
         offset, limit = page(request.page_token, request.page_size)
@@ -121,14 +122,14 @@ class JobService(rpc.JobServiceServicer):
         queue = events.subscribe(name)
         try:
             job = self.store.get_job(name, user)
-            yield pb.JobEvent(job=convert.job_to_pb(job))
+            yield pb.JobEvent(job=self.converted.job(job))
             if job.phase.final:
                 return
             while True:
                 event = await queue.get()
                 if isinstance(event, JobRecord):
                     job = event
-                yield convert.event_to_pb(event, job)
+                yield self.converted.event(event, job)
                 if event is job and job.phase.final:
                     return
         finally:

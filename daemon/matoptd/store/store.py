@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import json
+import threading
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -27,6 +28,7 @@ from .disk import Disk
 
 CHUNK = 1 << 20  # bytes per message when a blob is streamed
 SETTINGS_KEPT = 4096  # jobs whose settings stay decoded (status calls read them again and again)
+RECORDS_KEPT = 4096   # jobs whose latest record stays in memory, decoded once it is read
 
 
 class Store:
@@ -41,6 +43,11 @@ class Store:
         # A job's settings never change once written: each is decoded once and shared (they
         # are frozen; nothing changes them in place).
         self._settings: collections.OrderedDict[str, JobSettings] = collections.OrderedDict()
+        # Each job's latest row as written (owner, settings, status text) and, once read, its
+        # record: a status call (hundreds a second) then costs neither SQL nor JSON. Written
+        # through under ``_lock``, so that the row and the kept copy never disagree.
+        self._records: collections.OrderedDict[str, _Kept] = collections.OrderedDict()
+        self._lock = threading.Lock()
         if "blob_owners" not in self.db.tables():
             self.blobs.adopt(self._uses(None))
 
@@ -88,16 +95,23 @@ class Store:
     # -- jobs -------------------------------------------------------------------------------
 
     def add_job(self, job: JobRecord, request_id: str | None) -> None:
-        self.db.execute(
-            "INSERT INTO jobs (name, owner, request_id, seq, phase, settings, record) VALUES "
-            "(?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM jobs), ?, ?, ?)",
-            (job.name, job.owner, request_id or None, job.phase.value,
-             codec.dumps(job.settings), _status(job)))
+        settings, status = codec.dumps(job.settings), _status(job)
+        with self._lock:
+            self.db.execute(
+                "INSERT INTO jobs (name, owner, request_id, seq, phase, settings, record) "
+                "VALUES (?, ?, ?, (SELECT COALESCE(MAX(seq),0)+1 FROM jobs), ?, ?, ?)",
+                (job.name, job.owner, request_id or None, job.phase.value, settings, status))
+            self._keep(_Kept(job.name, job.owner, settings, status))
 
     def put_job(self, job: JobRecord) -> None:
         """The job's record as it stands (its settings were written by ``add_job``)."""
-        self.db.execute("UPDATE jobs SET phase=?, record=? WHERE name=?",
-                        (job.phase.value, _status(job), job.name))
+        status = _status(job)
+        with self._lock:
+            self.db.execute("UPDATE jobs SET phase=?, record=? WHERE name=?",
+                            (job.phase.value, status, job.name))
+            kept = self._records.get(job.name)
+            if kept is not None:
+                self._keep(_Kept(job.name, job.owner, kept.settings, status))
 
     def job_by_request(self, owner: str, request_id: str) -> JobRecord | None:
         rows = self.db.query("SELECT name, settings, record FROM jobs WHERE owner=? AND "
@@ -105,12 +119,29 @@ class Store:
         return self._job(*rows[0]) if rows else None
 
     def get_job(self, name: str, owner: str | None = None) -> JobRecord:
-        """A job by name; with ``owner``, another user's job is NOT_FOUND, as if absent."""
-        rows = self.db.query("SELECT name, settings, record, owner FROM jobs WHERE name=?",
-                             (name,))
-        if not rows or (owner is not None and rows[0][3] != owner):
-            raise NotFound(f"job '{name}' not found")
-        return self._job(*rows[0][:3])
+        """A job by name; with ``owner``, another user's job is NOT_FOUND, as if absent.
+        The record is shared with every other reader until the job changes: take a
+        ``snapshot()`` to change it."""
+        with self._lock:
+            kept = self._records.get(name)
+            if kept is None:
+                rows = self.db.query("SELECT name, owner, settings, record FROM jobs "
+                                     "WHERE name=?", (name,))
+                if not rows:
+                    raise NotFound(f"job '{name}' not found")
+                kept = self._keep(_Kept(*rows[0]))
+            if owner is not None and kept.owner != owner:
+                raise NotFound(f"job '{name}' not found")
+            if kept.record is None:
+                kept.record = self._job(name, kept.settings, kept.status)
+            return kept.record
+
+    def _keep(self, kept: _Kept) -> _Kept:
+        self._records[kept.name] = kept
+        self._records.move_to_end(kept.name)
+        if len(self._records) > RECORDS_KEPT:
+            self._records.popitem(last=False)
+        return kept
 
     def list_jobs(self, owner: str | None, offset: int = 0, limit: int = -1,
                   phases: Iterable[Phase] = ()) -> list[JobRecord]:
@@ -132,9 +163,10 @@ class Store:
             f"({','.join('?' * len(values))})", (owner, *values))[0][0]
 
     def delete_job(self, name: str) -> None:
-        with self.db.transaction() as db:
+        with self._lock, self.db.transaction() as db:
             for table, col in (("jobs", "name"), ("iterations", "job"), ("results", "job")):
                 db.execute(f"DELETE FROM {table} WHERE {col}=?", (name,))
+            self._records.pop(name, None)
         self.checkpoints.delete(name)
         self._settings.pop(name, None)
 
@@ -196,6 +228,17 @@ class Store:
         record["settings"] = kept
         return codec.decoder(JobRecord)(record)
 
+
+
+@dataclasses.dataclass
+class _Kept:
+    """A job's row as the store last wrote or read it; ``record`` decoded on first read."""
+
+    name: str
+    owner: str
+    settings: str
+    status: str
+    record: JobRecord | None = None
 
 
 def _status(job: JobRecord) -> str:
