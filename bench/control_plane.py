@@ -6,7 +6,9 @@ all (evenly paced, never bursting to catch up) and holds WatchJob streams on the
 alternate with the same job alone. Reported: GetJob latency percentiles (also with the daemon
 idle, for reference), the rate reached, the job's slowdown per iteration against the job
 alone, and the CPU per iteration of the daemon's server process (which serves the load) and
-of its worker (which renders) separately.
+of its worker (which renders) separately. For reference, the same pollers against a
+``grpc.aio`` server whose GetJob returns a prebuilt message: gRPC's own CPU per call, the floor
+under any handler.
 
 Two layouts, each with its own alternating rounds:
 - shared: the daemon as it starts by default. Its server process (gRPC) and the load
@@ -24,6 +26,8 @@ Two layouts, each with its own alternating rounds:
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import threading
 from contextlib import contextmanager
 import time
@@ -113,6 +117,42 @@ class Load:
         finally:
             stream.cancel()
             client.close()
+
+
+# gRPC's own floor: a grpc.aio server whose GetJob returns one prebuilt message, nothing else.
+CONSTANT_SERVER = """
+import asyncio, sys, grpc
+from matopt_api.v1 import matopt_pb2 as pb, matopt_pb2_grpc as rpc
+JOB = pb.Job(name="jobs/constant", iteration=50, notes=["a note"] * 4)
+class Jobs(rpc.JobServiceServicer):
+    async def GetJob(self, request, context):
+        return JOB
+async def main():
+    server = grpc.aio.server()
+    rpc.add_JobServiceServicer_to_server(Jobs(), server)
+    print(server.add_insecure_port("127.0.0.1:0"), flush=True)
+    await server.start()
+    await server.wait_for_termination()
+asyncio.run(main())
+"""
+
+
+def grpc_floor(seconds: float) -> tuple[float, float]:
+    """Server CPU seconds per GetJob, and the rate reached, of ``CONSTANT_SERVER`` under the
+    pollers alone: what any Python gRPC server spends per call here, before a handler."""
+    process = subprocess.Popen([sys.executable, "-c", CONSTANT_SERVER], stdout=subprocess.PIPE,
+                               text=True)
+    try:
+        port = int(process.stdout.readline())
+        before = common.cpu_seconds(process.pid)
+        load = Load(f"127.0.0.1:{port}", "jobs/constant").start(watchers=0)
+        time.sleep(seconds)
+        load.finish()
+        return ((common.cpu_seconds(process.pid) - before) / max(len(load.latencies), 1),
+                load.rate)
+    finally:
+        process.kill()
+        process.wait()
 
 
 def percentiles_ms(latencies: list[float]) -> str:
@@ -275,6 +315,7 @@ def lines(layout: Layout, what: str) -> list[str]:
 def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
     iterations, rounds = (10, 2) if settings.quick else (50, 4)
+    floor, floor_rate = grpc_floor(1.0 if settings.quick else 4.0)
     shared = measure(Layout("shared"), server, settings, iterations, rounds)
     layouts = [shared]
     cores = sorted(os.sched_getaffinity(0))
@@ -300,11 +341,19 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                    "under load (context: work done, which other tenants disturb far less "
                    "than time)", f"{layout.cpu_ratio('workers'):.3f}x; server "
                    f"{layout.server_share:.0%} of a core", None)]
+    targets.append(Target(
+        "server CPU per GetJob, idle daemon / a grpc.aio server returning a constant (gRPC's "
+        "own floor)", f"{shared.per_request * 1000:.2f} ms / {floor * 1000:.2f} ms", None))
     csv = common.write_csv(settings.out / "control_plane.csv",
                            [row for layout in layouts for row in layout.rows])
     text = [f"Job: Cornell box walls, {RES}x{RES}, {SPP} spp, {iterations} iterations; {rounds} "
             f"alternating rounds per layout; {POLLERS} polling clients and {WATCHERS} watching "
             "clients, each on its own loopback channel.", ""]
+    text += [f"gRPC's own floor: a `grpc.aio` server whose GetJob returns one prebuilt message "
+             f"spends {floor * 1000:.2f} ms of CPU per call under the same pollers "
+             f"({floor_rate:.0f}/s reached), so {RATE:g} calls a second cost "
+             f"{RATE * floor:.0%} of one core in any Python gRPC server before its handler.",
+             ""]
     text += lines(shared, "the default: server, worker and load generator on every core")
     if len(layouts) > 1:
         text += lines(layouts[1], "the control plane on a core of its own")
