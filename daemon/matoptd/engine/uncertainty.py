@@ -2,9 +2,9 @@
 fed from the job's own scene, references, loss and Adam state.
 
 J, the derivative of each rendered pixel with respect to each component (in the latent
-coordinates Adam steps on), comes one pass per component: Mitsuba's forward mode
-(``render_forward``) where the integrator has it, else a central difference of two renders
-with the same samples. prbvolpath has no forward mode; a dielectric's eta is differenced
+coordinates Adam steps on), comes one pass per component (a colour's three in one pass where
+the render keeps channels apart: ``_passes``): Mitsuba's forward mode (``render_forward``)
+where the integrator has it, else a central difference of two renders with the same samples. prbvolpath has no forward mode; a dielectric's eta is differenced
 always: near the specular limit prb's derivative misses where the refracted rays go, and
 elsewhere it agrees with the difference but is far noisier (a rough glass ball at 64 spp:
 J^T J to within 67% against 10%). Each column is estimated twice from independent samples, and only
@@ -48,7 +48,7 @@ from .optimize import Best, Optimization, schedule_factor
 
 FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
 MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
-BUDGET = 0.1          # of the job's optimizing time, for J (its spp follows, down to 1)
+BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp follows, down to 1)
 # ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
 # base of 120 s), which an hours-long job's 10% would pass.
 BUDGET_CAP = 60.0
@@ -61,7 +61,6 @@ MAX_SAMPLES = 64      # times the job's spp: the most samples one component's J 
 LOG_STEP = 0.1
 LINEAR_STEP = 0.05    # of the range (of the value's size when the range is unbounded)
 ETA_STEP = 0.03       # a dielectric's eta: 2% near 1.5, three times the optimizer's
-EXTRA = 2.0           # budgets that components short of SIGNAL may take in all
 DRAW = 0x5EED0E55     # samples of their own, apart from any iteration's
 
 
@@ -167,7 +166,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
 
     J is first estimated at the spp that half the budget allows (_samples); a component
     whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
-    many a round, while the whole fits in EXTRA budgets: a derivative image can be far
+    many a round, while the whole fits in the budget: a derivative image can be far
     noisier than its render (a glass ball's eta at 16 spp: noise ten times the signal), and a
     standard error from a J^T J that noise swamps would be noise too."""
     began = time.perf_counter()
@@ -182,7 +181,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
     budget = min(BUDGET * job.seconds, BUDGET_CAP)
-    estimates = 2 * len(sensors) * sum(1 for c in comps if c.key)
+    estimates = 2 * len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                               comps, by_key, params))
     def cost(s: int) -> float:  # of one estimate at s spp (_samples)
         return 2 * (one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1))
 
@@ -191,18 +191,21 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
     todo = [k for k, c in enumerate(comps) if c.key]
+    together = [q for q in quantities if forward_mode(q, integrator_name)]
     draw = 2
     while True:
         round_began = time.perf_counter()
         for s in sensors:
             for n in (0, 1):
-                for k in todo:
-                    c = comps[k]
-                    new = _column(scene, params, integrator, integrator_name, by_key[c.key],
-                                  c.index, s, spp, _draw(job.seed, draw + n))
-                    old = columns[s][n][k]
-                    columns[s][n][k] = new if old is None else (
-                        (old * samples[k] + new * spp) / (samples[k] + spp))
+                for ks in _passes(todo, comps, by_key, params):
+                    q = by_key[comps[ks[0]].key]
+                    new = _columns(scene, params, integrator, integrator_name, q,
+                                   [comps[k].index for k in ks], s, spp,
+                                   _draw(job.seed, draw + n), together)
+                    for k, column in zip(ks, new):
+                        old = columns[s][n][k]
+                        columns[s][n][k] = column if old is None else (
+                            (old * samples[k] + column * spp) / (samples[k] + spp))
         samples[todo] += spp
         draw += 2
         fit = _linearized([_rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
@@ -213,7 +216,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         # round took scaled by the cost model (small images cost little more at 4x the spp)
         then = (time.perf_counter() - round_began) * len(short) / len(todo) * (
             cost(4 * spp) / cost(spp))
-        if not short or time.perf_counter() - began + then > EXTRA * budget:
+        if not short or time.perf_counter() - began + then > budget:
             break
         todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began)
@@ -276,21 +279,59 @@ def _latent_step(q: Quantity) -> float:
                                                                  0.1))
 
 
-def _tangent(q: Quantity, index: int) -> np.ndarray:
-    """The value's change per unit of the latent component (v for log, 1 otherwise)."""
+def _tangent(q: Quantity, indices: list[int]) -> np.ndarray:
+    """The value's change per unit of the latent components ``indices`` together (v for
+    log, 1 otherwise)."""
     t = np.zeros(q.value.size, dtype=np.float64)
-    if q.channels:
-        t[index::q.channels] = 1.0
-    else:
-        t[index] = 1.0
+    for index in indices:
+        if q.channels:
+            t[index::q.channels] = 1.0
+        else:
+            t[index] = 1.0
     return t * q.value if q.log else t
 
 
-def _column(scene, params, integrator, integrator_name: str, q: Quantity, index: int,
-            sensor: int, spp: int, seed: int) -> np.ndarray:
-    """d(render)/d(latent component) as an (H, W, 3) image, one estimate."""
-    tangent = _tangent(q, index)
-    if q.difference or integrator_name not in FORWARD_MODE:
+def _passes(todo: list[int], comps: list[_Component], by_key: dict[str, Quantity],
+            params: mi.SceneParameters) -> list[list[int]]:
+    """The components of ``todo`` that each J pass estimates: one each, but a colour's three
+    (or an RGB texture's levels) in one pass where the render keeps colour channels apart:
+    then a pixel's red channel depends on the red component alone, so a pass that moves all
+    three at once reads each one's column off its own channel (a third of the passes)."""
+    out: dict[str, list[int]] = {}
+    singles = []
+    for k in todo:
+        q = by_key[comps[k].key]
+        if _channels_apart(q, params):
+            out.setdefault(q.key, []).append(k)
+        else:
+            singles.append([k])
+    return [*out.values(), *singles]
+
+
+def _channels_apart(q: Quantity, params: mi.SceneParameters) -> bool:
+    """Whether the render's channel c depends on component c of ``q`` alone: an RGB colour
+    (or texture) in an RGB variant, where light transport multiplies channel by channel.
+    A spectral variant mixes them (a colour is upsampled to a spectrum), and so does a
+    principled BSDF with a specular or sheen tint (its base colour's luminance tints the
+    lobes); sampling that reads a colour's luminance only moves the noise."""
+    if (q.channels or q.value.size) != 3 or q.difference or not mi.is_rgb:
+        return False
+    prefix = q.key.removesuffix("base_color.value")
+    if prefix == q.key:
+        return True
+    return all(float(np.max(np.asarray(params[prefix + name]))) == 0.0
+               for name in ("spec_tint.value", "sheen.value") if prefix + name in params)
+
+
+def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
+             indices: list[int], sensor: int, spp: int, seed: int,
+             together: list[Quantity] | None = None) -> list[np.ndarray]:
+    """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, one
+    estimate, from one pass that moves them together (several only where ``_passes`` packed
+    a colour's channels: component c is then read off channel c). ``together``: every
+    quantity whose J comes in forward mode (``forward_mode``)."""
+    tangent = _tangent(q, indices)
+    if not forward_mode(q, integrator_name):
         h = _latent_step(q)
         sides = []
         for sign in (-1.0, 1.0):
@@ -309,27 +350,54 @@ def _column(scene, params, integrator, integrator_name: str, q: Quantity, index:
         (a, image_a), (b, image_b) = sides
         latent = (np.log(np.maximum(b, 1e-30)) - np.log(np.maximum(a, 1e-30))) if q.log \
             else (b - a)
-        width = float(np.max(np.abs(latent))) if np.any(latent) else 0.0
-        return (image_b - image_a) / width if width > 0 else np.zeros_like(image_a)
-    # Opaque: a literal value or tangent (a scalar's, a colour's) would be compiled into the
-    # kernel, and every component would compile one of its own (0.2 s each at 128x96).
-    leaf = parameters.assign(params[q.key], q.value)
-    dr.make_opaque(leaf)
-    dr.enable_grad(leaf)
-    params[q.key] = leaf
+        return [_channel(image_b - image_a, index, len(indices),
+                         _width(latent, _tangent(q, [index])))
+                for index in indices]
+    # Every forward-mode quantity is a leaf of every pass, its tangent 0 but for q's: each
+    # pass then traces the same kernel, compiled once rather than once per quantity. Opaque:
+    # a literal value or tangent would be compiled into the kernel (0.2 s each at 128x96).
+    leaves = {}
+    for other in together or [q]:
+        leaves[other.key] = leaf = parameters.assign(params[other.key], other.value)
+        dr.make_opaque(leaf)
+        dr.enable_grad(leaf)
+        params[other.key] = leaf
     params.update()
     # The tangent reaches what the plugin derives from the value at update() (a dielectric's
     # 1/eta) before the render, whose forward pass only follows edges made inside it.
-    direction = parameters.assign(leaf, tangent)
-    dr.make_opaque(direction)
-    dr.set_grad(leaf, direction)
-    dr.enqueue(dr.ADMode.Forward, leaf)
+    for other in together or [q]:
+        leaf = leaves[other.key]
+        direction = parameters.assign(leaf, tangent if other.key == q.key
+                                      else np.zeros(other.value.size))
+        dr.make_opaque(direction)
+        dr.set_grad(leaf, direction)
+        dr.enqueue(dr.ADMode.Forward, leaf)
     dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
     image = integrator.render_forward(scene, params, sensor=sensor, seed=seed, spp=spp)
     out = np.array(image, dtype=np.float64)[..., :3]
-    params[q.key] = parameters.assign(params[q.key], q.value)
+    for other in together or [q]:
+        params[other.key] = parameters.assign(params[other.key], other.value)
     params.update()
-    return out
+    return [_channel(out, index, len(indices), 1.0) for index in indices]
+
+
+def forward_mode(q: Quantity, integrator_name: str) -> bool:
+    """Whether ``q``'s J comes from Mitsuba's forward mode (else from central differences)."""
+    return not q.difference and integrator_name in FORWARD_MODE
+
+
+def _width(latent: np.ndarray, moved: np.ndarray) -> float:
+    """The latent distance between a difference's two sides, over the elements ``moved``."""
+    step = np.abs(latent[moved != 0])
+    return float(np.max(step)) if step.size and np.any(step) else 0.0
+
+
+def _channel(image: np.ndarray, index: int, packed: int, width: float) -> np.ndarray:
+    """A column from a pass's image: all of it for a pass of one component, else channel
+    ``index`` alone; over ``width`` (a difference's, 0: no slope)."""
+    if width <= 0:
+        return np.zeros_like(image)
+    return (image if packed == 1 else image * (np.arange(3) == index)) / width
 
 
 @dataclass
@@ -583,7 +651,7 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
              ) -> dict[str, Estimate]:
     """The images are linearized at the last iteration, and again at the best only when it
     lies further from it than two difference steps (over which J is taken as constant
-    anyway); the linearizations share the time J may take."""
+    anyway) and the first kept within its share of the time J may take."""
     kept = []
     for which, it in sorted(chosen, key=lambda c: c[0] != "last"):
         quantities, skipped = _quantities(opt, it, kinds)
@@ -598,11 +666,19 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
     out: dict[str, Estimate] = {}
     linearized: Linearization | None = None
     began = time.perf_counter()
+    count, reused = 0, ""
     for which, it, quantities, sensors, skipped in kept:
         if linearized is None or any(which == k[0] for k in apart):
-            with opt.holding(it.values):
-                linearized = linearize(opt.scene, opt.params, opt.integrator,
-                                       opt.integrator_name, quantities, sensors, job)
+            # A second linearization only where the first left it its share of the budget:
+            # at the least spp a small image's J costs its passes' tracing, whatever the spp.
+            if linearized is not None and linearized.seconds > BUDGET * job.seconds:
+                reused = (f"; {which}'s from the linearization at {kept[0][0]}, since a "
+                          "second would pass the time standard errors may take")
+            else:
+                with opt.holding(it.values):
+                    linearized = linearize(opt.scene, opt.params, opt.integrator,
+                                           opt.integrator_name, quantities, sensors, job)
+                count += 1
         adam = None if job.loss == "mae" else _adam(opt, it)
         out[which] = estimate(linearized, quantities, sensors, job, adam)
         out[which].notes[:0] = skipped
@@ -612,7 +688,8 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
         if e.names:
             e.notes.append(f"standard errors: {len(e.names)} components, {seconds:.2g} s "
                            f"({100 * seconds / max(opt.elapsed, 1e-9):.0f}% of the job's "
-                           f"optimizing time{', two linearizations' if apart else ''})")
+                           f"optimizing time{', two linearizations' if count > 1 else ''}"
+                           f"{reused})")
     return out
 
 

@@ -1,0 +1,74 @@
+"""The standard errors' Jacobian takes one render pass per component, but a colour's three
+components share one pass where the render keeps colour channels apart (engine/uncertainty.py,
+``_passes``): each component's column must then be exactly what its own pass gives, and a
+scene that mixes channels must not be packed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+
+@pytest.fixture(scope="module")
+def rgb():
+    mi.set_variant("llvm_ad_rgb")
+    from matoptd.engine import uncertainty
+    return uncertainty
+
+
+def _cornell(size: int = 32):
+    scene = mi.cornell_box()
+    scene["sensor"]["film"]["width"] = scene["sensor"]["film"]["height"] = size
+    scene = mi.load_dict(scene)
+    return scene, mi.traverse(scene)
+
+
+def test_a_colours_packed_pass_gives_each_component_its_own_column(rgb):
+    scene, params = _cornell()
+    integrator = mi.load_dict({"type": "prb", "max_depth": 4})
+    key = "red.reflectance.value"
+    q = rgb.Quantity(key, np.array(params[key], dtype=np.float64).ravel(), False, 0.0, 1.0)
+    assert rgb._passes([0, 1, 2], rgb.components([q], {}), {key: q}, params) == [[0, 1, 2]]
+
+    packed = rgb._columns(scene, params, integrator, "prb", q, [0, 1, 2], 0, 16, 7)
+    for c in range(3):
+        own = rgb._columns(scene, params, integrator, "prb", q, [c], 0, 16, 7)[0]
+        scale = np.abs(own).max()
+        assert scale > 0  # the red wall is seen: its colour has a slope
+        assert np.abs(own[..., np.arange(3) != c]).max() <= 1e-6 * scale  # channels apart
+        np.testing.assert_allclose(packed[c], own, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("tint", [0.0, 0.5])
+def test_a_principled_base_colour_is_packed_only_without_a_tint(rgb, tint):
+    scene = mi.load_dict({
+        "type": "scene",
+        "ball": {"type": "sphere", "bsdf": {"type": "principled", "spec_tint": tint,
+                                            "base_color": {"type": "rgb",
+                                                           "value": [0.8, 0.3, 0.2]}}},
+        "light": {"type": "constant"},
+        "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8,
+                                                   "height": 8}}})
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("base_color.value"))
+    q = rgb.Quantity(key, np.array(params[key], dtype=np.float64).ravel(), False, 0.0, 1.0)
+    passes = rgb._passes([0, 1, 2], rgb.components([q], {}), {key: q}, params)
+    assert passes == ([[0, 1, 2]] if tint == 0 else [[0], [1], [2]])
+
+
+def test_every_forward_quantity_in_every_pass_changes_no_column(rgb):
+    """Each pass makes all forward-mode quantities leaves (tangent 0 but for the one moved),
+    so that every pass runs one compiled kernel: the others' zero tangents add nothing."""
+    scene, params = _cornell()
+    integrator = mi.load_dict({"type": "prb", "max_depth": 4})
+    red, green = (rgb.Quantity(k, np.array(params[k], dtype=np.float64).ravel(), False, 0.0,
+                               1.0) for k in ("red.reflectance.value", "green.reflectance.value"))
+    for q in (red, green):
+        alone = rgb._columns(scene, params, integrator, "prb", q, [0, 1, 2], 0, 16, 5)
+        both = rgb._columns(scene, params, integrator, "prb", q, [0, 1, 2], 0, 16, 5,
+                            [red, green])
+        for a, b in zip(alone, both):
+            assert np.abs(a).max() > 0
+            np.testing.assert_allclose(b, a, atol=1e-5 * np.abs(a).max())
