@@ -236,7 +236,7 @@ class Converted:
     watcher the same objects, so hundreds of calls a second cost one conversion per change.
     The messages are shared: nothing changes them once built."""
 
-    def __init__(self, kept: int = 4096) -> None:
+    def __init__(self, kept: int = 256) -> None:  # the latest of each job polled or watched
         self.kept = kept
         # (kind, id) -> (the object, kept so that its id is not reused, and its message)
         self._built: collections.OrderedDict[tuple[str, int], tuple[object, object]] = \
