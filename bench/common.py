@@ -9,6 +9,7 @@ and reports the ratio.
 from __future__ import annotations
 
 import csv
+import ctypes
 import os
 import signal
 import statistics
@@ -137,6 +138,20 @@ def tokens_file(path: Path, users: Sequence[str]) -> dict[str, str]:
     return tokens
 
 
+try:  # resolved here: between fork and exec the child may take no lock (dlopen's included)
+    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):  # not Linux
+    _PRCTL = None
+
+
+def _die_with_parent() -> None:
+    """SIGTERM to the daemon when the bench process ends, however it ends: a bench stopped
+    by a signal skips its ``finally``, and a daemon left running would load every later
+    measurement on the machine."""
+    if _PRCTL is not None:
+        _PRCTL(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 @contextmanager
 def daemon(work: Path, name: str = "daemon", extra: Sequence[str] = (),
            users: Sequence[str] = ()) -> Iterator[Daemon]:
@@ -153,7 +168,7 @@ def daemon(work: Path, name: str = "daemon", extra: Sequence[str] = (),
         command += ["--tokens", str(directory / "tokens")]
     with open(log, "wb") as out:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
-                                   stderr=subprocess.STDOUT)
+                                   stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
     try:
         deadline = time.monotonic() + 180
         while not port_file.exists():
