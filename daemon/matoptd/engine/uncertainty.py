@@ -195,9 +195,10 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     draw = 2
     while True:
         round_began = time.perf_counter()
+        passes = _passes(todo, comps, by_key, params)  # reads the scene: once a round
         for s in sensors:
             for n in (0, 1):
-                for ks in _passes(todo, comps, by_key, params):
+                for ks in passes:
                     q = by_key[comps[ks[0]].key]
                     new = _columns(scene, params, integrator, integrator_name, q,
                                    [comps[k].index for k in ks], s, spp,
