@@ -273,8 +273,8 @@ def test_a_cancelled_many_sensor_job_ends_promptly_while_others_go_on(two_users)
                  and any("rendering result images 0/6" in n for n in j.notes))
     ended = next(t for t, label, j in seen if label == "mine" and j is not None
                  and j.state == pb.JOB_STATE_CANCELLED)
-    # ... never waiting much longer than a slice for it (an end phase shorter than a slice
-    # may end before bob's next turn, and holds him no longer than a slice would)
+    # ... a turn of it inside the end phase, or else no long wait for one (an end phase that
+    # fits in a slice or two may end before bob's next turn, holding him no longer)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and not any(
             t > ended for t, label, j in seen if label == "other" and j is None):
@@ -283,7 +283,8 @@ def test_a_cancelled_many_sensor_job_ends_promptly_while_others_go_on(two_users)
     around = ([t for t in turns if t < began][-1:] + [t for t in turns if began <= t <= ended]
               + [t for t in turns if t > ended][:1])
     gaps = [b - a for a, b in zip(around, around[1:])]
-    assert gaps and max(gaps) < max(1.0, (ended - began) / 2), (gaps, ended - began)
+    inside = any(began < t < ended for t in turns)
+    assert inside or (gaps and max(gaps) < 1.0), (gaps, ended - began)
     result = alice.jobs.GetJobResult(pb.GetJobResultRequest(name=mine, which=pb.WHICH_BEST))
     assert sorted({i.sensor for i in result.images}) == list(range(6))
     assert len(result.images) == 6 * 4
