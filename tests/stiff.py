@@ -159,10 +159,11 @@ CASES = [
              "and 128 spp it ended anywhere in 2.07-2.70 over five seeds)"),
     Case("optically thin medium", medium_ball(1e-3, 0.8),
          {f"{CLOUD}.sigma_t.value.value": [1.0]}, {f"{CLOUD}.sigma_t.value.value": [1e-3]}, 60,
-         within={f"{CLOUD}.sigma_t.value.value": (0.0, 0.2)},
-         expect_note=("still moving",),
+         within={f"{CLOUD}.sigma_t.value.value": (0.0, 0.05)},
          rates={f"{CLOUD}.sigma_t.value.value": 0.1},  # three decades away: a larger step
-         why="sigma_t 1e-3: the medium is nearly invisible, the gradient nearly 0 at the truth"),
+         why="sigma_t 1e-3: the medium is nearly invisible, the gradient nearly 0 at the truth; "
+             "stepped linearly below its start, it comes down to the noise's reach of 0 (in log "
+             "space it was still at 0.1 after 60 iterations)"),
     Case("optically thick medium", medium_ball(1e3, 0.8),
          {f"{CLOUD}.sigma_t.value.value": [10.0]}, {f"{CLOUD}.sigma_t.value.value": [1e3]}, 60,
          within={f"{CLOUD}.sigma_t.value.value": (20.0, 2e3)},

@@ -15,6 +15,8 @@ from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import settings as api
 from matoptd.engine.choices import REGISTRY
 from matoptd.engine.choices.eta_hold import EtaHold
+from matoptd.engine.choices.linear_extinction import LinearExtinction
+from matoptd.engine.choices.log_space import LogSpace
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 
 import thesis_scenes as ts
@@ -39,6 +41,44 @@ def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     asked = [c.name for c in REGISTRY if not c.switchable]
     assert sorted(asked) == ["exposure_gains", "large_steps", "smoothness"]
     assert all(c(_settings(all="off")).on for c in REGISTRY if not c.switchable)
+
+
+SIGMA_T, GRID = "medium.sigma_t.value.value", "cloud.sigma_t.data"
+
+
+def _loop(**choices: str):
+    """What the two choices read of a loop: a homogeneous sigma_t started at 2 (rate 0.03)
+    and a grid's sigma_t."""
+    inf = float("inf")
+    settings = api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+                               [api.ParameterSetting(SIGMA_T, 0.03, 0.0, inf),
+                                api.ParameterSetting(GRID, 0.2, 0.0, inf)], choices=choices)
+    return settings, types.SimpleNamespace(
+        settings=settings, parameters={p.key: p for p in settings.parameters},
+        starts={SIGMA_T: np.array([2.0]), GRID: np.full(8, 2.0)},
+        rates={SIGMA_T: 0.03, GRID: 0.2}, current={})
+
+
+def test_a_homogeneous_extinction_steps_linearly_at_a_share_of_its_value_or_start():
+    settings, loop = _loop()
+    linear, logs = LinearExtinction(settings), LogSpace(settings)
+    linear.setup(loop, None)
+    logs.setup(loop, None)
+    assert logs.keys == {GRID}  # a grid's texels span decades: log space still
+    assert loop.rates[SIGMA_T] == pytest.approx(0.03 * 2.0)
+    # Below its start, the start's share (absolute steps); above it, the value's (relative).
+    for value, rate in ((0.4, 0.06), (0.0, 0.06), (50.0, 1.5)):
+        loop.current = {SIGMA_T: np.array([value])}
+        assert linear.before_render(loop, 1) is False
+        assert loop.rates[SIGMA_T] == pytest.approx(rate)
+    assert loop.rates[GRID] == 0.2
+    assert "0.06 per step at full rate below the start" in linear.notes()[0]
+
+    # Turned off, log space takes sigma_t back and its rate is the rate given.
+    settings, loop = _loop(linear_extinction="off")
+    logs = LogSpace(settings)
+    logs.setup(loop, None)
+    assert logs.keys == {SIGMA_T, GRID} and loop.rates[SIGMA_T] == 0.03
 
 
 def _path(values: list[float], rate: float = 0.1) -> Path:
@@ -135,6 +175,11 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     held = _job(stubs, case, 24)
     choice = next(c for c in held.choices if c.name == "eta_hold")
     assert choice.on and "albedo" in choice.why and "sigma_t" in choice.why
+    # Its homogeneous sigma_t steps linearly, outside log space, and the notes say how.
+    choices = {c.name: c for c in held.choices}
+    assert choices["linear_extinction"].on and "sigma_t" in choices["linear_extinction"].why
+    assert "sigma_t" not in choices["log_space"].why
+    assert any("sigma_t" in n and "stepped linearly" in n for n in held.notes)
     # No release before WINDOW steps of the others are known.
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))

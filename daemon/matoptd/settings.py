@@ -45,6 +45,8 @@ CHOICES = {
     "black_start": "a colour that tints other lobes, started black, starts at 0.5 instead",
     "log_space": "positive unbounded values and microfacet widths stepped as u = log v: a "
                  "rate is a relative step",
+    "linear_extinction": "a homogeneous medium's scalar sigma_t stepped linearly (not in log "
+                         "space), its rate a share of the larger of its value and its start",
     "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
                        "(0.0318) while Adam steps on below it",
     "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "

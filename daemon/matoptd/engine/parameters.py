@@ -185,6 +185,12 @@ def log_space(key: str, lo: float, hi: float) -> bool:
     return (lo == 0.0 and math.isinf(hi)) or (property_name(key) in _WIDTHS and hi > 0)
 
 
+def homogeneous_extinction(key: str, size: int) -> bool:
+    """A homogeneous medium's scalar sigma_t (a constant volume's one value), which the
+    linear_extinction choice steps linearly rather than in log space."""
+    return property_name(key) == "sigma_t" and size == 1
+
+
 def log_bounds(key: str, lo: float, hi: float) -> tuple[float, float]:
     """The range in which a log-space value is kept: the width floor where lo is 0."""
     floor = WIDTH_FLOOR if property_name(key) in _WIDTHS else 0.0

@@ -19,14 +19,15 @@ from .eta_hold import EtaHold
 from .exposure_gains import ExposureGains
 from .filter_scaling import FilterScaling, Loading
 from .large_steps import LargeSteps
+from .linear_extinction import LinearExtinction
 from .log_space import LogSpace
 from .multires import Multires
 from .roughness_floor import RoughnessFloor
 from .smoothness import Smoothness
 
 REGISTRY: tuple[type[Choice], ...] = (
-    FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, RoughnessFloor,
-    ExposureGains, Smoothness, EtaHold, EtaDifferences)
+    FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, LinearExtinction,
+    RoughnessFloor, ExposureGains, Smoothness, EtaHold, EtaDifferences)
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"

@@ -29,8 +29,10 @@ class LogSpace(Choice):
     name = "log_space"
 
     def setup(self, loop, state) -> None:
+        linear = self.settings.choice_on("linear_extinction")  # it steps those apart
         self.keys = {k for k, p in loop.parameters.items()
-                     if parameters.log_space(k, p.lo, p.hi)}
+                     if parameters.log_space(k, p.lo, p.hi) and not (
+                         linear and parameters.homogeneous_extinction(k, loop.starts[k].size))}
         self.rates = {k: loop.parameters[k].learning_rate for k in self.keys}
         self.ranges = {k: (loop.parameters[k].lo, loop.parameters[k].hi) for k in self.keys}
         self.applies = bool(self.keys)
