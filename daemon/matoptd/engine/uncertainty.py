@@ -4,12 +4,15 @@ fed from the job's own scene, references, loss and Adam state.
 J, the derivative of each rendered pixel with respect to each component (in the latent
 coordinates Adam steps on), comes one pass per component (a colour's three in one pass where
 the render keeps channels apart: ``_passes``): Mitsuba's forward mode (``render_forward``)
-where the integrator has it, else a central difference of two renders with the same samples. prbvolpath has no forward mode; a dielectric's eta is differenced
-always: near the specular limit prb's derivative misses where the refracted rays go, and
-elsewhere it agrees with the difference but is far noisier (a rough glass ball at 64 spp:
-J^T J to within 67% against 10%). Each column is estimated twice from independent samples, and only
-products across the two enter J^T J, so J's own noise does not inflate it; a column whose
-J^T J its noise still swamps gets more samples (``linearize``). A gain's column
+where the integrator has it, else a central difference of two renders with the same samples.
+prbvolpath has no forward mode; a dielectric's eta is differenced always: near the specular
+limit prb's derivative misses where the refracted rays go, and elsewhere it agrees with the
+difference but is far noisier (a rough glass ball at 64 spp: J^T J to within 67% against
+10%). Each column is estimated twice from independent samples, and only products across the
+two enter J^T J, so J's own noise does not inflate it; with prb, prb_basic and prbvolpath both
+estimates come from one pass at twice the samples, and every forward pass of a round replays
+one primal pass (split_samples.py). A column whose J^T J its noise still swamps gets more
+samples (``linearize``). A gain's column
 is the gained render's channel itself. A texture or grid enters as its mean level per channel
 (one direction: every texel moved together), which is what trades against a scalar (a
 medium's albedo grid against its sigma_t); a standard error per texel would take one pass
@@ -42,7 +45,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..range_notes import at_bound
-from . import covariance, parameters
+from . import covariance, parameters, split_samples
 from .diagnosis import DECIDER, DECIDERS
 from .optimize import Best, Optimization, schedule_factor
 
@@ -181,12 +184,19 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
     budget = min(BUDGET * job.seconds, BUDGET_CAP)
-    estimates = 2 * len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
-                                               comps, by_key, params))
-    def cost(s: int) -> float:  # of one estimate at s spp (_samples)
-        return 2 * (one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1))
+    passes = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                        comps, by_key, params))
+    split = split_samples.shares_primal(integrator)
 
-    spp = _samples(budget / 2 - (time.perf_counter() - began), estimates, cost, job.spp)
+    def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
+        return one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1)
+
+    def cost(s: int) -> float:  # of a pass's two estimates at s spp each
+        # split: one forward pass at 2s (its primal shared), about two renders' work;
+        # else two estimates of a primal and a forward pass (or two sides) each
+        return 2 * render(2 * s) if split else 4 * render(s)
+
+    spp = _samples(budget / 2 - (time.perf_counter() - began), passes, cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
@@ -197,12 +207,15 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         round_began = time.perf_counter()
         passes = _passes(todo, comps, by_key, params)  # reads the scene: once a round
         for s in sensors:
-            for n in (0, 1):
-                for ks in passes:
-                    q = by_key[comps[ks[0]].key]
-                    new = _columns(scene, params, integrator, integrator_name, q,
-                                   [comps[k].index for k in ks], s, spp,
-                                   _draw(job.seed, draw + n), together)
+            seeds = (_draw(job.seed, draw), _draw(job.seed, draw + 1))
+            traced = (split_samples.trace(scene, integrator, s, spp, seeds[0]) if split and any(
+                forward_mode(by_key[comps[ks[0]].key], integrator_name) for ks in passes)
+                else None)
+            for ks in passes:
+                q = by_key[comps[ks[0]].key]
+                pair = _columns(scene, params, integrator, integrator_name, q,
+                                [comps[k].index for k in ks], s, spp, seeds, together, traced)
+                for n, new in enumerate(pair):
                     for k, column in zip(ks, new):
                         old = columns[s][n][k]
                         columns[s][n][k] = column if old is None else (
@@ -250,16 +263,15 @@ def _draw(seed: int, n: int) -> int:
     return (seed * 1_000_003 + DRAW + 7919 * n) % 2**32
 
 
-def _samples(budget: float, estimates: int, cost, spp: int) -> int:
+def _samples(budget: float, passes: int, cost, spp: int) -> int:
     """spp of each J estimate: the job's, or fewer (a power of 2, at least 1) so that
-    ``estimates`` of them take about ``budget`` seconds. An estimate costs about two primal
-    renders (a forward-mode pass renders the primal and the tangent; a difference renders two
-    sides), and a render about its time at 1 spp (tracing and launching, which small images
-    are made of) plus a share of the rest by its spp: ``cost(s)``."""
+    ``passes`` (each two estimates) take about ``budget`` seconds, ``cost(s)`` each: renders
+    cost about their time at 1 spp (tracing and launching, which small images are made of)
+    plus a share of the rest by their spp."""
     s = spp
     # halved while over the budget, but not where halving saves little (small images are
     # mostly tracing and launching: 8 spp cost what 1 does, with 8 times the noise)
-    while s > 1 and estimates * cost(s) > budget and cost(s // 2) < 0.8 * cost(s):
+    while s > 1 and passes * cost(s) > budget and cost(s // 2) < 0.8 * cost(s):
         s //= 2
     return s
 
@@ -325,12 +337,15 @@ def _channels_apart(q: Quantity, params: mi.SceneParameters) -> bool:
 
 
 def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
-             indices: list[int], sensor: int, spp: int, seed: int,
-             together: list[Quantity] | None = None) -> list[np.ndarray]:
-    """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, one
-    estimate, from one pass that moves them together (several only where ``_passes`` packed
-    a colour's channels: component c is then read off channel c). ``together``: every
-    quantity whose J comes in forward mode (``forward_mode``)."""
+             indices: list[int], sensor: int, spp: int, seeds: tuple[int, int],
+             together: list[Quantity], traced: split_samples.Traced | None
+             ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, twice from
+    independent samples, from passes that move them together (several only where
+    ``_passes`` packed a colour's channels: component c is then read off channel c).
+    ``together``: every quantity whose J comes in forward mode (``forward_mode``);
+    ``traced``: this round's rays and primal pass, when the integrator's forward mode can
+    reuse them (split_samples: both estimates from one pass), else None."""
     tangent = _tangent(q, indices)
     if not forward_mode(q, integrator_name):
         h = _latent_step(q)
@@ -345,20 +360,27 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
             params[q.key] = side = parameters.assign(params[q.key], moved)
             dr.make_opaque(side)  # as in forward mode: one kernel for every component
             params.update()
-            sides.append((moved, _render(scene, params, integrator, sensor, spp, seed)))
+            # the same samples on both sides, other samples for the other estimate
+            if split_samples.shares_primal(integrator):
+                images = split_samples.primal(split_samples.trace(
+                    scene, integrator, sensor, spp, seeds[0]), integrator)
+            else:
+                images = tuple(_render(scene, params, integrator, sensor, spp, seed)
+                               for seed in seeds)
+            sides.append((moved, images))
         params[q.key] = parameters.assign(params[q.key], q.value)
         params.update()
-        (a, image_a), (b, image_b) = sides
+        (a, images_a), (b, images_b) = sides
         latent = (np.log(np.maximum(b, 1e-30)) - np.log(np.maximum(a, 1e-30))) if q.log \
             else (b - a)
-        return [_channel(image_b - image_a, index, len(indices),
-                         _width(latent, _tangent(q, [index])))
-                for index in indices]
+        return tuple([_channel(image_b - image_a, index, len(indices),
+                               _width(latent, _tangent(q, [index]))) for index in indices]
+                     for image_a, image_b in zip(images_a, images_b))
     # Every forward-mode quantity is a leaf of every pass, its tangent 0 but for q's: each
     # pass then traces the same kernel, compiled once rather than once per quantity. Opaque:
     # a literal value or tangent would be compiled into the kernel (0.2 s each at 128x96).
     leaves = {}
-    for other in together or [q]:
+    for other in together:
         leaves[other.key] = leaf = parameters.assign(params[other.key], other.value)
         dr.make_opaque(leaf)
         dr.enable_grad(leaf)
@@ -366,7 +388,7 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
     params.update()
     # The tangent reaches what the plugin derives from the value at update() (a dielectric's
     # 1/eta) before the render, whose forward pass only follows edges made inside it.
-    for other in together or [q]:
+    for other in together:
         leaf = leaves[other.key]
         direction = parameters.assign(leaf, tangent if other.key == q.key
                                       else np.zeros(other.value.size))
@@ -374,12 +396,17 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
         dr.set_grad(leaf, direction)
         dr.enqueue(dr.ADMode.Forward, leaf)
     dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
-    image = integrator.render_forward(scene, params, sensor=sensor, seed=seed, spp=spp)
-    out = np.array(image, dtype=np.float64)[..., :3]
-    for other in together or [q]:
+    if traced is not None:
+        images = split_samples.forward(traced, scene, integrator)
+    else:
+        images = tuple(np.array(integrator.render_forward(
+            scene, params, sensor=sensor, seed=seed, spp=spp), dtype=np.float64)[..., :3]
+            for seed in seeds)
+    for other in together:
         params[other.key] = parameters.assign(params[other.key], other.value)
     params.update()
-    return [_channel(out, index, len(indices), 1.0) for index in indices]
+    return tuple([_channel(image, index, len(indices), 1.0) for index in indices]
+                 for image in images)
 
 
 def forward_mode(q: Quantity, integrator_name: str) -> bool:
