@@ -6,12 +6,14 @@ all (evenly paced, never bursting to catch up) and holds WatchJob streams on the
 alternate with the same job alone. Reported: GetJob latency percentiles (also with the daemon
 idle, for reference), the rate reached, the job's slowdown per iteration against the job
 alone, and the CPU per iteration of the daemon's server process (which serves the load) and
-of its worker (which renders) separately. For reference, the same pollers against a
-``grpc.aio`` server whose GetJob returns a prebuilt message: gRPC's own CPU per call, the floor
-under any handler.
+of its worker (which renders) separately, and one user's GetJob latency at 2 calls a second
+during a job with no other load (what a person polling the job sees). For reference, the
+same pollers against a ``grpc.aio`` server whose GetJob returns a prebuilt message: gRPC's own
+CPU per call, the floor under any handler.
 
 Two layouts, each with its own alternating rounds:
-- shared: the daemon as it starts by default. Its server process (gRPC) and the load
+- shared: the daemon as it starts by default (its server threads at the lowest priority,
+  nice 19, below the worker: matoptd.main.server_nice). Its server process (gRPC) and the load
   generator (this process) run on the same cores as the worker's render threads, so on a
   machine whose cores all render (the LLVM backend uses every core it is given) the CPU the
   load takes comes out of the job's share: this figure says what status traffic costs a
@@ -42,6 +44,7 @@ RES, SPP = 128, 4
 RATE = 200.0      # GetJob requests per second, all pollers together
 POLLERS = 8
 WATCHERS = 16
+LIGHT_RATE = 2.0  # one user's GetJob per second, as `matopt job status` in a loop asks
 TARGET = 0.05     # slowdown per iteration
 MAX_SECONDS = 120  # no load runs longer than this, whatever happens to the job
 
@@ -52,6 +55,8 @@ class Load:
 
     address: str
     job: str
+    rate_asked: float = RATE    # GetJob requests per second, all pollers together
+    pollers: int = POLLERS
     stop: threading.Event = field(default_factory=threading.Event)
     latencies: list[float] = field(default_factory=list)
     errors: int = 0
@@ -63,7 +68,7 @@ class Load:
 
     def start(self, watchers: int = WATCHERS) -> "Load":
         self.began, self.cpu = time.perf_counter(), time.process_time()
-        for n in range(POLLERS):
+        for n in range(self.pollers):
             self.threads.append(threading.Thread(target=self._poll, args=(n,), daemon=True))
         for _ in range(watchers):
             self.threads.append(threading.Thread(target=self._watch, daemon=True))
@@ -84,10 +89,10 @@ class Load:
         return len(self.latencies) / (self.ended - self.began)
 
     def _poll(self, n: int) -> None:
-        period = POLLERS / RATE
+        period = self.pollers / self.rate_asked
         client = mc.connect(self.address, probe_timeout=None)
         request = pb.GetJobRequest(name=self.job)
-        due = time.perf_counter() + period * n / POLLERS  # staggered
+        due = time.perf_counter() + period * n / self.pollers  # staggered
         deadline = time.perf_counter() + MAX_SECONDS
         try:
             while not self.stop.is_set() and time.perf_counter() < deadline:
@@ -195,6 +200,7 @@ class Layout:
                                                                        "loaded": []})
     loads: list[Load] = field(default_factory=list)
     idle: Load | None = None
+    light: Load | None = None  # one user's polls during a job, nothing else
     per_request: float = 0.0  # server CPU seconds per GetJob, idle
     rows: list[dict] = field(default_factory=list)
 
@@ -274,6 +280,11 @@ def measure(layout: Layout, server: common.Daemon, settings: Settings, iteration
             "client_cpu_share": load[0].cpu / (load[0].ended - load[0].began)})
 
     common.alternate(rounds, without, under_load)
+    light: list[Load] = []
+    run_ = common.run_job(client, spec, on_created=lambda name: light.append(
+        Load(server.address, name, LIGHT_RATE, 1).start(watchers=0)), server=server)
+    layout.light = light[0].finish()
+    common.require_success(run_, "control_plane")
     return layout
 
 
@@ -287,7 +298,8 @@ def lines(layout: Layout, what: str) -> list[str]:
         f"- rate reached {rate:.0f} GetJob/s, {sum(x.errors for x in loads)} errors, "
         f"{sum(x.events for x in loads)} WatchJob events delivered",
         f"- GetJob latency during the job: {percentiles_ms(layout.latencies)}; daemon idle: "
-        f"{percentiles_ms(layout.idle.latencies)} ({layout.idle.rate:.0f}/s)",
+        f"{percentiles_ms(layout.idle.latencies)} ({layout.idle.rate:.0f}/s); one user's "
+        f"{LIGHT_RATE:g}/s alone during a job: {percentiles_ms(layout.light.latencies)}",
         f"- slowdown per round: {', '.join(f'{s:+.1%}' for s in layout.slowdowns)}; per "
         f"iteration alone {ms(layout.alone)} ms, loaded {ms(layout.loaded)} ms (the job's "
         "clock); as the client sees iterations arrive: slowdown "
@@ -337,6 +349,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                    slowdown < TARGET),
             Target(f"{short}: GetJob latency during the job", percentiles_ms(layout.latencies),
                    None),
+            Target(f"{short}: one user's GetJob latency at {LIGHT_RATE:g}/s during the job, "
+                   "no other load", percentiles_ms(layout.light.latencies), None),
             Target(f"{short}: worker CPU per iteration, loaded / alone; the server's CPU "
                    "under load (context: work done, which other tenants disturb far less "
                    "than time)", f"{layout.cpu_ratio('workers'):.3f}x; server "

@@ -1,6 +1,7 @@
 """On cores the server shares with its workers, rendering goes first: the daemon's server
-threads run ``--server-nice`` levels below the workers, whose processes (restarted ones too)
-keep the nice value the daemon was started with. A real daemon, read from /proc."""
+threads run ``--server-nice`` levels below the workers (by default the lowest, 19, beside CPU
+workers), whose processes (restarted ones too) keep the nice value the daemon was started
+with. A real daemon, read from /proc."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import grpc
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
+from matoptd.main import SERVER_NICE, SERVER_NICE_SHARED, server_nice
 
 from conftest import Daemon, Stubs
 from test_faults import wait_worker
@@ -56,3 +58,20 @@ def test_the_server_runs_below_its_workers_and_restarted_ones_too(daemon):
         assert sorted(set(threads.values())) == [base, base + BY]  # lanes, and the rest
     finally:
         stubs.close()
+
+
+def test_by_default_the_server_goes_lowest_where_cpu_workers_share_its_cores(tmp_path):
+    """Beside CPU workers on its own cores the server runs at nice 19 (its calls wait for the
+    render); a given level wins, and beside GPU workers or with cores of its own it is 10."""
+    assert server_nice(None, True) == SERVER_NICE_SHARED == 19
+    assert server_nice(None, False) == SERVER_NICE == 10
+    assert server_nice(3, True) == 3 and server_nice(0, True) == 0
+    d = Daemon(tmp_path / "data", None).start()  # this machine's one CPU worker
+    try:
+        stubs = Stubs(d.address)
+        worker = wait_worker(stubs, (pb.WORKER_STATE_IDLE,))
+        base = nice(worker.pid)
+        assert nice(d.proc.pid) == min(19, base + SERVER_NICE_SHARED)
+        stubs.close()
+    finally:
+        d.stop()

@@ -53,7 +53,9 @@ from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
 
-SERVER_NICE = 10  # nice levels of the server's threads below the workers': rendering goes first
+# Nice levels of the server's threads below the workers', so that rendering goes first: the
+# lowest where CPU workers render on the server's own cores, else SERVER_NICE (server_nice).
+SERVER_NICE, SERVER_NICE_SHARED = 10, 19
 
 # The admission limits (admission.Limits): what one request or one user may ask of the shared
 # workers. Sizes take suffixes (4G, 512M).
@@ -108,11 +110,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="keep the first N cores this process may use for the server (API, "
                         "store, scheduler) and give the workers only the others, so that "
                         "status traffic never competes with rendering (default: all shared)")
-    p.add_argument("--server-nice", type=int,
-                   default=int(env("MATOPTD_SERVER_NICE", str(SERVER_NICE))),
+    p.add_argument("--server-nice", type=int, default=env("MATOPTD_SERVER_NICE"),
                    help="nice levels the server's threads (gRPC, the API's handlers) run "
                         "below the workers, so that on cores they share rendering goes first; "
-                        "0 leaves them as started (default %(default)s)")
+                        f"0 leaves them as started (default: {SERVER_NICE_SHARED} where CPU "
+                        f"workers render on the server's cores, else {SERVER_NICE})")
     p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
                    help="resident memory a worker may use before it is stopped and its job "
                         "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
@@ -140,6 +142,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--log-level", default=env("MATOPTD_LOG_LEVEL", "info"))
     p.add_argument("--version", action="version", version=f"matoptd {__version__}")
     return p.parse_args(argv)
+
+
+def server_nice(asked: int | None, renders_beside: bool) -> int:
+    """``--server-nice``, or by default the lowest priority where CPU workers render on the
+    server's own cores. There every status call's CPU (0.5 ms of gRPC's own per GetJob) comes
+    out of the job's: 200 GetJob/s and 16 watch streams slowed a job on 2 cores by 13-19% at
+    nice 10, the server's share capped but still taken, and by about 4% at 19, where the
+    calls wait for the render instead (bench/control_plane.py). Beside a GPU's workers, whose
+    render is on the device, 10 keeps the calls prompt."""
+    if asked is not None:
+        return int(asked)
+    return SERVER_NICE_SHARED if renders_beside else SERVER_NICE
 
 
 def is_loopback(host: str) -> bool:
@@ -192,8 +206,12 @@ async def serve(args: argparse.Namespace) -> None:
     else:
         lanes = await asyncio.to_thread(start_workers, args, store)
 
-    if args.server_nice > 0:
-        devices.lower_priority(args.server_nice, lanes.thread_ids())
+    beside = cluster is None and args.worker_cores is None and any(
+        w.placement.cuda is None for w in lanes.state.workers.values())
+    nice = server_nice(args.server_nice, beside)
+    if nice > 0:
+        devices.lower_priority(nice, lanes.thread_ids())
+        log.info("server threads %d nice levels below the workers", nice)
     backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
     server, health_servicer, names = app.build(backend, Authenticator(tokens))
