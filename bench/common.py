@@ -73,6 +73,7 @@ class Settings:
     film: tuple[int, int] | None = None  # real_scenes: film width and height
     iterations: int = 0        # real_scenes: iterations per run (0: by device)
     seeds: int = 0             # real_scenes: seeds (0: 3)
+    tables: tuple[str, ...] = ()  # real_scenes: the tables run (empty: all)
 
 
 # ---------------------------------------------------------------------------------------------

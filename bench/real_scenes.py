@@ -32,8 +32,8 @@ relative error of each parameter (rmse / rms(truth); a principled roughness as a
 max(0.001, r^2), a microfacet alpha as it is). Per seed and as median (min-max).
 
 Sizes: ``--film``/``--iterations`` (default 683x512 and 150 iterations on a CUDA variant,
-128x96 and 100 on the CPU); ``--seeds`` (default 3). ``--quick``: 64x48, 20 iterations, one
-seed, no on/off runs.
+128x96 and 100 on the CPU); ``--seeds`` (default 3); ``--tables`` (default both). ``--quick``:
+64x48, 20 iterations, one seed, no on/off runs.
 """
 
 from __future__ import annotations
@@ -416,7 +416,13 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         "integrator and depth. Times are the job's optimizing seconds and the plain loop's "
         "seconds since it began loading; median (min-max) over the seeds.")
     rows = []
+    unknown = set(settings.tables) - {t.name for t in TABLES}
+    if unknown:
+        raise ValueError(f"--tables: no table {', '.join(sorted(unknown))} (there are "
+                         f"{', '.join(t.name for t in TABLES)})")
     for table in TABLES:
+        if settings.tables and table.name not in settings.tables:
+            continue
         began = time.perf_counter()
         try:
             runs = measure(table, p, settings, server)

@@ -170,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iterations", type=int, default=0,
                    help="real_scenes: iterations per run (default 150 on a GPU, 100 on the CPU)")
     p.add_argument("--seeds", type=int, default=0, help="real_scenes: seeds (default 3)")
+    p.add_argument("--tables", nargs="+", metavar="TABLE", default=(),
+                   help="real_scenes: only these of its tables, e.g. table4 (default: all)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
@@ -178,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     film = tuple(int(x) for x in args.film.lower().split("x")) if args.film else None
     settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
-                        film, args.iterations, args.seeds)
+                        film, args.iterations, args.seeds, tuple(args.tables))
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
