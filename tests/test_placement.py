@@ -28,6 +28,9 @@ def test_server_cores_keep_the_server_and_the_worker_apart(tmp_path: Path):
         worker = stubs.server.GetServerInfo(pb.GetServerInfoRequest()).workers[0]
         assert thread_affinities(daemon.proc.pid) == {frozenset(CORES[:1])}
         assert thread_affinities(worker.pid) == {frozenset(CORES[1:])}
+        # numpy's BLAS on one thread in the worker: its threads would fight the render's
+        environ = open(f"/proc/{worker.pid}/environ", "rb").read().split(b"\0")
+        assert b"OPENBLAS_NUM_THREADS=1" in environ or "OPENBLAS_NUM_THREADS" in os.environ
         assert worker.threads == len(CORES) - 1
         stubs.close()
     finally:

@@ -100,14 +100,21 @@ def forward(t: Traced, scene: mi.Scene, integrator: mi.Integrator
 def _split(t: Traced, integrator: mi.Integrator, value, valid
            ) -> tuple[np.ndarray, np.ndarray]:
     images = []
+    value = value * t.weight
+    plain = mi.is_rgb and not mi.has_flag(t.film.flags(), mi.FilmFlags.Special)
     for lanes in (t.first, ~t.first):
-        share = dr.select(lanes, mi.Float(1), mi.Float(0))
         t.film.prepare(integrator.aov_names())  # a fresh film for each estimate
         block = t.film.create_block()
         block.set_coalesce(False)  # a lane's neighbours may go to the other film
-        ADIntegrator._splat_to_block(block, t.film, t.pos, value=value * t.weight * share,
-                                     weight=share, alpha=dr.select(valid, share, 0),
-                                     aovs=[], wavelengths=t.ray.wavelengths)
+        if plain:  # RGB channels, [alpha,] weight, as _splat_to_block puts them
+            alpha = [dr.select(valid, mi.Float(1), mi.Float(0))] if mi.has_flag(
+                t.film.flags(), mi.FilmFlags.Alpha) else []
+            block.put(t.pos, [value.x, value.y, value.z, *alpha, mi.Float(1)], active=lanes)
+        else:  # the other lanes put with weight 0: the same image, at twice the splats
+            share = dr.select(lanes, mi.Float(1), mi.Float(0))
+            ADIntegrator._splat_to_block(block, t.film, t.pos, value=value * share,
+                                         weight=share, alpha=dr.select(valid, share, 0),
+                                         aovs=[], wavelengths=t.ray.wavelengths)
         t.film.put_block(block)
         images.append(t.film.develop())  # reads this film's storage, not the next one's
     dr.eval(*images)  # both in one launch

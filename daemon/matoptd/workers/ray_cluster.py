@@ -23,7 +23,7 @@ import ray
 from ray.exceptions import RayError
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-from .devices import Placement, total_memory
+from .devices import NUMPY_ENVIRONMENT, Placement, total_memory
 from .handle import START_TIMEOUT_S, Worker, WorkerLost
 
 log = logging.getLogger("matoptd.ray")
@@ -142,6 +142,7 @@ class RayWorker(Worker):
         actor = EngineActor.options(
             num_gpus=1 if self.gpu else 0, num_cpus=0 if self.gpu else self.placement.threads,
             scheduling_strategy=NodeAffinitySchedulingStrategy(self.node, soft=False),
+            runtime_env={"env_vars": NUMPY_ENVIRONMENT},
         ).remote(self.variant, self.placement.threads, self.name)
         with self._lock:
             self._actor, self._conn = actor, ActorConnection(actor)
