@@ -215,12 +215,13 @@ class Layout:
     @property
     def server_share(self) -> float:
         """The server process's CPU under load, in cores."""
-        return common.median([c.server / w for c, w in zip(self.cpu["loaded"],
-                                                            self.wall["loaded"])])
+        shares = [c.server / w for c, w in zip(self.cpu["loaded"], self.wall["loaded"])]
+        return common.median([x for x in shares if x == x])  # a nan: see lines()
 
     def cpu_ratio(self, process: str) -> float:
-        return common.median([getattr(b, process) / getattr(a, process)
-                              for a, b in zip(self.cpu["alone"], self.cpu["loaded"])])
+        ratios = [getattr(b, process) / getattr(a, process)
+                  for a, b in zip(self.cpu["alone"], self.cpu["loaded"])]
+        return common.median([r for r in ratios if r == r])  # a nan: see lines()
 
 
 def per_iteration_cpu(run_: common.JobRun) -> common.Cpu:
@@ -292,7 +293,11 @@ def lines(layout: Layout, what: str) -> list[str]:
     loads = layout.loads
     rate = sum(len(x.latencies) for x in loads) / sum(x.ended - x.began for x in loads)
     client_cpu = sum(x.cpu for x in loads) / sum(x.ended - x.began for x in loads)
-    ms = lambda xs, fmt="{:.0f}": common.spread([x * 1000 for x in xs], fmt)  # noqa: E731
+    # A round whose own watch saw fewer than two iterations (its events waited behind a
+    # starved server) has no per-iteration figures as the client sees them: left out, "n/a".
+    ms = lambda xs, fmt="{:.0f}": common.spread([x * 1000 for x in xs if x == x], fmt)  # noqa: E731
+    pct = lambda x: f"{x:+.1%}" if x == x else "n/a"  # noqa: E731
+    busy = lambda x: f"{x:.2f}" if x == x else "n/a"  # noqa: E731
     return [
         f"**{layout.name}** ({what}):",
         f"- rate reached {rate:.0f} GetJob/s, {sum(x.errors for x in loads)} errors, "
@@ -303,16 +308,16 @@ def lines(layout: Layout, what: str) -> list[str]:
         f"- slowdown per round: {', '.join(f'{s:+.1%}' for s in layout.slowdowns)}; per "
         f"iteration alone {ms(layout.alone)} ms, loaded {ms(layout.loaded)} ms (the job's "
         "clock); as the client sees iterations arrive: slowdown "
-        + ", ".join(f"{b / a - 1:+.1%}" for a, b in zip(layout.wall["alone"],
-                                                        layout.wall["loaded"])),
+        + ", ".join(pct(b / a - 1) for a, b in zip(layout.wall["alone"],
+                                                   layout.wall["loaded"])),
         f"- worker CPU per iteration: alone {ms([c.workers for c in layout.cpu['alone']])} ms, "
         f"loaded {ms([c.workers for c in layout.cpu['loaded']])} ms; server CPU per "
         f"iteration: alone {ms([c.server for c in layout.cpu['alone']], '{:.1f}')} ms, loaded "
         f"{ms([c.server for c in layout.cpu['loaded']], '{:.1f}')} ms",
         "- the worker's CPU per second of the job (cores it kept busy): alone "
-        + ", ".join(f"{c.workers / w:.2f}" for c, w in zip(layout.cpu["alone"],
-                                                            layout.wall["alone"]))
-        + ", loaded " + ", ".join(f"{c.workers / w:.2f}" for c, w in zip(
+        + ", ".join(busy(c.workers / w) for c, w in zip(layout.cpu["alone"],
+                                                         layout.wall["alone"]))
+        + ", loaded " + ", ".join(busy(c.workers / w) for c, w in zip(
             layout.cpu["loaded"], layout.wall["loaded"]))
         + ": where it does the same work per iteration but keeps fewer cores busy, it waited "
         "for its cores",
