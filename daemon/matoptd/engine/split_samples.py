@@ -19,6 +19,7 @@ B would then underestimate J^T J.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,7 +49,9 @@ class Traced:
     valid: Any
 
 
-_INDEPENDENT: list[mi.Sampler] = []
+@functools.cache
+def _independent() -> mi.Sampler:
+    return mi.load_dict({"type": "independent"})
 
 
 def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
@@ -56,10 +59,8 @@ def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
     """The rays and primal pass of 2 * ``spp`` samples per pixel, evaluated once."""
     camera = scene.sensors()[sensor]
     film = camera.film()
-    if not _INDEPENDENT:
-        _INDEPENDENT.append(mi.load_dict({"type": "independent"}))
     total = 2 * spp
-    sampler = _INDEPENDENT[0].clone()
+    sampler = _independent().clone()
     sampler.set_sample_count(total)
     sampler.set_samples_per_wavefront(total)
     size = film.crop_size()

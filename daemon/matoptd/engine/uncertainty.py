@@ -12,11 +12,10 @@ difference but is far noisier (a rough glass ball at 64 spp: J^T J to within 67%
 two enter J^T J, so J's own noise does not inflate it; with prb, prb_basic and prbvolpath both
 estimates come from one pass at twice the samples, and every forward pass of a round replays
 one primal pass (split_samples.py). A column whose J^T J its noise still swamps gets more
-samples (``linearize``). A gain's column
-is the gained render's channel itself. A texture or grid enters as its mean level per channel
-(one direction: every texel moved together), which is what trades against a scalar (a
-medium's albedo grid against its sigma_t); a standard error per texel would take one pass
-per texel.
+samples (``linearize``). A gain's column is the gained render's channel itself. A texture or
+grid enters as its mean level per channel (one direction: every texel moved together), which
+is what trades against a scalar (a medium's albedo grid against its sigma_t); a standard
+error per texel would take one pass per texel.
 
 The render noise (S_r) and the residual of the mean render (S_R: the reference's own noise
 and what the scene does not model) come from two more renders A, B at the job's spp:
