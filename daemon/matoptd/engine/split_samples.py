@@ -74,7 +74,9 @@ def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
         radiance, valid, _, _ = integrator.sample(
             mode=dr.ADMode.Primal, scene=scene, sampler=sampler.clone(), ray=ray,
             depth=mi.UInt32(0), δL=None, state_in=None, active=mi.Bool(True))
-        first = dr.arange(mi.UInt32, lanes) % total < spp
+        # opaque: literals would make each spp's primal kernel a kernel of its own to compile
+        first = (dr.arange(mi.UInt32, lanes) % dr.opaque(mi.UInt32, total)
+                 < dr.opaque(mi.UInt32, spp))
         dr.eval(ray, weight, pos, radiance, valid, first)
     return Traced(film, sampler, ray, weight, pos, first, radiance, valid)
 
