@@ -183,8 +183,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
     budget = min(BUDGET * job.seconds, BUDGET_CAP)
-    passes = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
-                                        comps, by_key, params))
+    count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                       comps, by_key, params))
     split = split_samples.shares_primal(integrator)
 
     def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
@@ -195,7 +195,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         # else two estimates of a primal and a forward pass (or two sides) each
         return 2 * render(2 * s) if split else 4 * render(s)
 
-    spp = _samples(budget / 2 - (time.perf_counter() - began), passes, cost, job.spp)
+    spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
@@ -226,8 +226,10 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         signal = np.diag(fit.hessian) / np.maximum(np.diag(fit.spread), 1e-300)
         short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
         # the next round: 4x the samples for the components short of SIGNAL, at what this
-        # round took scaled by the cost model (small images cost little more at 4x the spp)
-        then = (time.perf_counter() - round_began) * len(short) / len(todo) * (
+        # round took per pass (a colour's three components are one) scaled by the cost model
+        # (small images cost little more at 4x the spp)
+        then = (time.perf_counter() - round_began) * (
+            len(_passes(short, comps, by_key, params)) / len(passes)) * (
             cost(4 * spp) / cost(spp))
         if not short or time.perf_counter() - began + then > budget:
             break
