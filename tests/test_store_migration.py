@@ -22,6 +22,9 @@ WALLS = {"red.reflectance.value": [0.570068, 0.0430135, 0.0443706],
          "green.reflectance.value": [0.105421, 0.37798, 0.076425]}
 
 
+ITERATIONS = 400  # of the jobs paused before the migration
+
+
 def job(stubs: Stubs, scene: str, ref: str, iterations: int, **spec) -> pb.Job:
     return stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
         scene=scene, iterations=iterations, spp=2, seed=3,
@@ -69,8 +72,10 @@ def test_a_data_dir_of_the_protobuf_release_comes_back_whole_and_resumes(tmp_pat
         done = job(stubs, scene.name, ref.exr_blob, 6, ground_truth=[
             pb.ParameterValue(key=k, value=v) for k, v in WALLS.items()])
         done = wait_state(stubs, done.name, (pb.JOB_STATE_SUCCEEDED,))
-        kept = paused(stubs, job(stubs, scene.name, ref.exr_blob, 40).name)
-        crashed = paused(stubs, job(stubs, scene.name, ref.exr_blob, 40).name)
+        # Long enough that a pause asked at iteration 12 lands before the end: on a CPU host
+        # the server answers behind the render (nice 19), and 40 iterations took 0.44 s.
+        kept = paused(stubs, job(stubs, scene.name, ref.exr_blob, ITERATIONS).name)
+        crashed = paused(stubs, job(stubs, scene.name, ref.exr_blob, ITERATIONS).name)
         before = answers(stubs, [done.name, kept.name, crashed.name])
     finally:
         stubs.close()
@@ -120,7 +125,7 @@ def test_a_data_dir_of_the_protobuf_release_comes_back_whole_and_resumes(tmp_pat
             assert end.state == pb.JOB_STATE_SUCCEEDED, end.error
             assert end.resumed_from == f"checkpoint at iteration {j.iteration}"
             history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=j.name))
-            assert [r.iteration for r in history.iterations] == list(range(40))
+            assert [r.iteration for r in history.iterations] == list(range(ITERATIONS))
         assert "data dir upgraded to version 2: 1 scenes, 3 jobs" in daemon.log.read_text()
     finally:
         stubs.close()
