@@ -295,7 +295,8 @@ def lines(layout: Layout, what: str) -> list[str]:
     client_cpu = sum(x.cpu for x in loads) / sum(x.ended - x.began for x in loads)
     # A round whose own watch saw fewer than two iterations (its events waited behind a
     # starved server) has no per-iteration figures as the client sees them: left out, "n/a".
-    ms = lambda xs, fmt="{:.0f}": common.spread([x * 1000 for x in xs if x == x], fmt)  # noqa: E731
+    ms = lambda xs, fmt="{:.0f}": common.spread(  # noqa: E731
+        [x * 1000 for x in xs if x == x], fmt)
     pct = lambda x: f"{x:+.1%}" if x == x else "n/a"  # noqa: E731
     busy = lambda x: f"{x:.2f}" if x == x else "n/a"  # noqa: E731
     return [

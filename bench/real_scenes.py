@@ -24,8 +24,9 @@ also run turned off (``JobSpec.choices``: NAME "off"), one at a time, and the ``
 (no choices, constant rate, the plain loop's rates, spp and bounds) gives the cost of an
 iteration at equal work: besides its runs in turn with the plain loop and the defaults for
 each seed, EQUAL_PAIRS short runs of it and of the plain loop back to back, alternating, whose
-median ratio is the figure (the machine's drift over a table's hour stays out of it). Table 2 also runs with ``max_depth`` 64 set on the scene, the depth
-the daemon used to cap an unbounded one at.
+median ratio is the figure (the machine's drift over a table's hour stays out of it). Table 2
+also runs with ``max_depth`` 64 set on the scene, the depth the daemon used to cap an
+unbounded one at.
 
 Per run: seconds per iteration (from the end of iteration 0 to the end of the last, so loading
 and the first kernels stay out), the time at which every target parameter is within 1% (2%)
@@ -292,8 +293,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
               f"{max(run.final[k] for k in table.targets):.4f}", flush=True)
 
     for seed in range(p.seeds):
-        # The plain preset beside them, in turn: its ratio to the plain loop is read per
-        # seed, from runs minutes apart rather than a table's length.
+        # The plain preset beside them, in turn, for its errors (its cost: equal_work)
         runs_ = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
                  lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
                                                                              p.iterations)))]
