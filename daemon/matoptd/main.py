@@ -148,8 +148,8 @@ def server_nice(asked: int | None, renders_beside: bool) -> int:
     """``--server-nice``, or by default the lowest priority where CPU workers render on the
     server's own cores. There every status call's CPU (0.5 ms of gRPC's own per GetJob) comes
     out of the job's: 200 GetJob/s and 16 watch streams slowed a job on 2 cores by 13-19% at
-    nice 10, the server's share capped but still taken, and by about 4% at 19, where the
-    calls wait for the render instead (bench/control_plane.py). Beside a GPU's workers, whose
+    nice 10, the server's share capped but still taken, and by 2% at 19, where the calls
+    wait for the render instead (bench/control_plane.py). Beside a GPU's workers, whose
     render is on the device, 10 keeps the calls prompt."""
     if asked is not None:
         return int(asked)
