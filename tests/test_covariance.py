@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from matoptd.engine.covariance import (BETA_2, Dynamics, Linearized, adam_scatter, correlated,
-                                       crossed, determined, estimate, gradient_noise, remaining)
+                                       crossed, determined, estimate, gradient_noise, remaining,
+                                       residual_noise)
 
 
 def _dynamics(rates: np.ndarray, v_hat: np.ndarray, gradients: np.ndarray | None = None
@@ -120,6 +121,51 @@ def test_a_job_still_on_its_way_is_a_newton_step_from_the_optimum():
     settled = 0.05 * rng.normal(size=(30, 1))
     assert abs(remaining(inverse, settled)[0][0]) < 0.01
     assert remaining(inverse, moving[:5]) == (0, 0)  # too few to say
+
+
+def test_a_settled_job_gets_no_distance_to_go_and_a_moving_one_does():
+    """A settled job's mean gradient is where its last steps wandered plus noise, which the
+    scatter already counts: no bias is added for it. One whose gradients keep a sign far
+    beyond that gets the Newton step's square on top."""
+    rng = np.random.default_rng(5)
+    fit = Linearized(np.array([[2.0]]), np.array([[1.0]]), np.array([[0.0]]),
+                     np.zeros((1, 1)))
+    rates = np.full((60, 1), 0.01)
+    added = [(e.covariance - e.noise)[0, 0] / e.noise[0, 0] for e in (
+        estimate(fit, _dynamics(rates, np.ones(1), rng.normal(size=(17, 1))))
+        for _ in range(50))]
+    assert np.mean(added) < 0.1  # counted twice, it would be about 1
+    moving = estimate(fit, _dynamics(rates, np.ones(1), 4.0 + rng.normal(size=(17, 1))))
+    assert moving.covariance[0, 0] > moving.noise[0, 0] + 2.0  # (H^-1 g)^2 = (4 / 2)^2
+
+
+def test_a_rendered_reference_takes_its_noise_from_every_pixel_a_misfit_from_its_own():
+    """A reference rendered with 8x the job's samples: its noise is one eighth of the render
+    noise, which the residual of the few pixels J weights (here 20 of 4000) estimates to
+    within +-100% or worse, but every pixel together far better. A misfit where J is
+    large (a highlight the scene does not model) keeps the per-pixel estimate."""
+    rng = np.random.default_rng(6)
+    rows = 4000
+    j = np.zeros((rows, 1))
+    j[:20, 0] = 1.0
+    noise = rng.uniform(0.5, 1.5, rows)
+    truth = crossed(j, j, noise / 8)[0][0, 0]
+    pooled, pixel = [], []
+    for _ in range(200):
+        a, b, r = (rng.normal(size=rows) * np.sqrt(s) for s in (noise, noise, noise / 8))
+        residual = (a - r) * (b - r)
+        seen = (a - b) ** 2 / 2
+        pooled.append(residual_noise(j, j, seen, residual, np.ones(rows))[0, 0])
+        pixel.append(crossed(j, j, residual)[0][0, 0])
+    assert np.mean(pooled) == pytest.approx(truth, rel=0.15)
+    assert np.std(pooled) < 0.3 * np.std(pixel)
+    misfit = np.zeros(rows)
+    misfit[:20] = 3.0
+    a, b = (rng.normal(size=rows) * np.sqrt(noise) for _ in range(2))
+    residual = (a - misfit) * (b - misfit)
+    kept = residual_noise(j, j, (a - b) ** 2 / 2, residual, np.ones(rows))[0, 0]
+    assert kept == pytest.approx(crossed(j, j, residual)[0][0, 0])
+    assert kept > 20 * 9.0 * 0.5
 
 
 def test_strongly_correlated_pairs_are_named_strongest_first():

@@ -30,7 +30,9 @@ as overshoots inflate v. A long job at a small rate averages many renders and en
 than that: the model follows the job's own schedule. Two figures come from what the job
 recorded: Q is scaled to the variance of the gradients of its last steps (the derivative's
 own noise adds to the render's), and the Gauss-Newton step H^-1 g of their mean gradient, the
-distance a job still converging has left, is added as a bias.
+distance a job still converging has left, is added as a bias where it lies beyond what the
+scatter and the gradients' own noise explain (a settled job's last steps wander by the
+scatter, and adding their mean again counted it twice: standard errors 1.4x too wide).
 """
 
 from __future__ import annotations
@@ -87,6 +89,28 @@ def crossed(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> tuple[np.ndarra
     w2 = (weight ** 2)[:, None]
     variance = (w2 * signal).T @ noise + (w2 * noise).T @ signal + (w2 * noise).T @ noise
     return (m + m.T) / 2, np.sqrt(np.maximum(variance, 0))
+
+
+def residual_noise(ka: np.ndarray, kb: np.ndarray, noise: np.ndarray, residual: np.ndarray,
+                   weight: np.ndarray) -> np.ndarray:
+    """J^T C S_R C J from two estimates of C J (rows x p), the render noise per row and the
+    residual (A - R)(B - R) of two renders A, B.
+
+    The residual is unbiased per row but, against a reference with 8 times the job's
+    samples, some 8 times noisier than its mean; over the few pixels a roughness moves, the
+    J-weighted sum varied +-300% between seeds. So unless it shows more than that noise
+    beyond the reference's noise taken as one multiple of the render noise over the whole
+    image (a render's noise is a render's at other spp: one ratio, from every pixel),
+    that multiple is used; a residual beyond it (what the scene does not model, as with
+    a photograph) keeps the per-pixel estimate."""
+    pixel = crossed(ka, kb, residual)[0]
+    w2 = weight ** 2
+    ratio = max(float(w2 @ residual) / max(float(w2 @ noise), 1e-300), 0.0)
+    pooled = ratio * crossed(ka, kb, noise)[0]
+    # each row's own square bounds its variance: Monte Carlo noise is heavy-tailed
+    spread = np.sqrt(((ka * kb) ** 2).T @ residual ** 2)
+    beyond = np.diag(pixel) - np.diag(pooled) > NOISE_LEVELS * spread
+    return pixel if beyond.any() else pooled
 
 
 def determined(hessian: np.ndarray, spread: np.ndarray
@@ -247,7 +271,7 @@ class Estimate:
 
 
 def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
-    """Cov = Adam's scatter + H^-1 Q_R H^-1 + the remaining distance's b b^T, over the
+    """Cov = Adam's scatter + H^-1 Q_R H^-1 + the remaining distance's b b^T (if any), over the
     determined components; without ``dynamics`` (a loss Adam's model does not hold for) the
     scatter is that of a fit to one render, H^-1 Q H^-1, and there is no b."""
     ok, inverse, noisy, groups = determined(fit.hessian, fit.spread)
@@ -261,11 +285,26 @@ def estimate(fit: Linearized, dynamics: Dynamics | None) -> Estimate:
         noise = gradient_noise(fit.noise, hessian, first, dynamics.gradients)
         scatter = adam_scatter(hessian, noise, dynamics)
         step, n = remaining(inverse, dynamics.gradients)
-        if n:  # b b^T less what the mean gradient's own noise puts in it
-            bias = positive(np.outer(step, step) - inverse @ noise @ inverse / n)
+        if n:
+            # A converged job's b is where its last steps wandered (the scatter, which
+            # Adam's small last rates barely move) plus the noise of n gradients: only what
+            # b shows beyond both is a distance still to go.
+            converged = scatter + inverse @ noise @ inverse / n
+            if _beyond(step, converged):
+                bias = positive(np.outer(step, step) - converged)
     mask = np.outer(ok, ok)
     return Estimate((scatter + reference + bias) * mask, ok, noisy, (scatter + reference) * mask,
                     groups)
+
+
+def _beyond(step: np.ndarray, covariance: np.ndarray, z: float = 2.326) -> bool:
+    """Whether ``step`` lies beyond what ``covariance`` explains at the 99% level: its
+    squared Mahalanobis length against chi^2 with p degrees of freedom (Wilson-Hilferty)."""
+    p = int(np.count_nonzero(np.diag(covariance) > 0))
+    if not p:
+        return False
+    length = float(step @ np.linalg.pinv(covariance) @ step)
+    return length > p * (1 - 2 / (9 * p) + z * np.sqrt(2 / (9 * p))) ** 3
 
 
 def remaining(inverse: np.ndarray, gradients: np.ndarray, least: int = 8
