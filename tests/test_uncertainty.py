@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import math
 
+import grpc
 import numpy as np
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import wait_state
+from conftest import wait_iteration, wait_state
 from scenes import camera, create_scene, upload, vol
 
 RES = 24
@@ -62,6 +63,41 @@ def test_each_wall_colour_comes_with_a_standard_error(walls):
     assert set(shown) == set(WALLS)
     for p in result.parameters:
         assert list(shown[p.key].standard_error) == list(p.standard_error)
+
+
+def test_a_paused_job_estimates_its_standard_errors_on_request(stubs, cornell, walls):
+    """Half-way, how sure are the values? A running job is told to pause first; a paused one
+    gets for its kept iteration the standard errors an end would give, and then goes on as
+    it would have."""
+    scene, reference = cornell
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, references=[pb.Reference(blob=reference)], iterations=100_000, spp=8,
+        parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS])))
+    wait_iteration(stubs, job.name, 40)
+    asking = pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST,
+                                    estimate_standard_errors=True)
+    with pytest.raises(grpc.RpcError) as err:
+        stubs.jobs.GetJobResult(asking)
+    assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert "pause it first" in err.value.details()
+    stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
+    at = wait_state(stubs, job.name, (pb.JOB_STATE_PAUSED,)).iteration
+    plain = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name, which=pb.WHICH_LAST))
+    assert all(not p.standard_error for p in plain.parameters)
+    asked = stubs.jobs.GetJobResult(asking)
+    assert asked.iteration == plain.iteration == at - 1
+    ended = {p.key: p for p in walls[1].parameters}
+    for p, q in zip(asked.parameters, plain.parameters):
+        assert list(p.value) == list(q.value)
+        assert len(p.standard_error) == 3, p
+        # about what the same job ended with at 40 iterations (another draw of its noise)
+        for e, reading, other in zip(p.standard_error, p.interval,
+                                     ended[p.key].standard_error):
+            assert reading != pb.INTERVAL_NOT_DETERMINED and other / 4 < e < 4 * other, p
+    assert any(n.startswith("standard errors: 6 components") for n in asked.standard_error_notes)
+    stubs.jobs.ResumeJob(pb.ResumeJobRequest(name=job.name))
+    assert wait_iteration(stubs, job.name, at + 3).resumed_from == f"checkpoint at iteration {at}"
+    stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
 
 
 def test_a_light_and_a_gain_that_only_scale_together_are_not_determined(stubs, cornell):

@@ -238,6 +238,15 @@ class Result:
 
 
 @dataclass
+class Estimated:
+    """Standard errors of one kept iteration of a paused job, estimated on request."""
+
+    errors: dict[str, StandardError]
+    gain_errors: dict[int, StandardError]
+    notes: list[str]  # pairs that trade off, what is not determined, the estimate's cost
+
+
+@dataclass
 class Finished:
     results: list[Result]
     notes: list[str]  # the diagnosis: what went wrong when the job did not converge
@@ -277,6 +286,11 @@ class Engine(Protocol):
         """The job's results (best, and last unless it was cancelled before a step returned)
         and its diagnosis, from its history as the daemon recorded it. Without ``render``,
         no per-sensor images (``result_images`` made them)."""
+
+    def estimate(self, job: str, settings: JobSettings, checkpoint: bytes, which: str
+                 ) -> Estimated:
+        """Standard errors of a paused job's kept iteration ("best" or "last"), from its
+        checkpoint; nothing of the job stays loaded."""
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""

@@ -271,6 +271,25 @@ class MitsubaEngine:
             shown.traded, shown.undetermined)
         return api.Finished(results, notes + shown.notes, _counters(opt))
 
+    def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
+                 ) -> api.Estimated:
+        """Standard errors of a paused job's kept iteration ("best" or "last"), as its end
+        would estimate them: the job is loaded from its checkpoint under a name of its own
+        (so that a resume meanwhile loads it apart), estimated and released. The checkpoint
+        holds no gradient records: the noise is the model's and no distance to go is added."""
+        run = f"{job}#estimate"
+        self.start(run, settings, checkpoint)
+        try:
+            opt = self.runs[run].opt
+            opt.flush()
+            chosen = [c for c in _chosen(opt) if c[0] == which]
+            if not chosen:
+                raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
+            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds)[which]
+            return api.Estimated(e.errors, e.gains, e.notes)
+        finally:
+            self.release(run)
+
     def release(self, job: str) -> None:
         """Drops the job's run and returns the memory it held: Dr.Jit keeps freed buffers in
         a cache of its own, which goes back only when asked."""

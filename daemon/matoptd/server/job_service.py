@@ -5,6 +5,7 @@ worker."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import uuid
 
@@ -147,7 +148,25 @@ class JobService(rpc.JobServiceServicer):
             raise FailedPrecondition(f"job '{name}' has no {chosen.upper()} result "
                                      f"({job.phase.state}): results exist once a job "
                                      "has finished its first iteration")
-        return convert.result_to_pb(result, job)
+        if not request.estimate_standard_errors or job.phase.final:
+            return convert.result_to_pb(result, job)
+        if job.phase is not Phase.PAUSED:
+            raise FailedPrecondition(
+                f"job '{name}' is {job.phase.state}: standard errors are estimated on request "
+                "for a paused job (pause it first); an ended job's results carry them")
+        checkpoint = self.store.checkpoints.read(name)
+        if checkpoint is None:
+            raise FailedPrecondition(f"job '{name}' was paused before its first checkpoint: "
+                                     "resume it for a few iterations, then pause it again")
+        settings = job.settings
+        with self.backend.tasks.hold(caller()):
+            estimated = await self.backend.lanes.run_task(
+                lambda engine: engine.estimate(name, settings, checkpoint, chosen))
+        result = dataclasses.replace(result, standard_errors=estimated.errors,
+                                     gain_errors=estimated.gain_errors)
+        out = convert.result_to_pb(result, job)
+        out.standard_error_notes.extend(estimated.notes)
+        return out
 
     async def GetJobHistory(self, request, context):
         name = resource("jobs", request.name)
