@@ -4,7 +4,7 @@ a reference rendered from the truth with noise of its own, a job started near th
 the daemon's defaults, and for each recovered component whether the truth lies within two of
 its standard errors (on the open side for one at a bound). Calibrated, that holds about 95% of
 the time; asked: 85-99% per kind. ``tests/test_calibration.py`` runs a few seeds,
-``bench/calibration.py`` twenty.
+``bench/calibration.py`` sixty.
 
 Jobs start near the truth (within ``spread``, relative) so that they end converged: the
 standard error describes the noise of a converged estimate (and the remaining distance of one

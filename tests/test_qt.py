@@ -403,9 +403,16 @@ def test_pause_resume_cancel_with_live_preview(window, qtbot, stubs, tmp_path):
     assert window.view.reference.has_image()
     assert window.view.pause_button.isEnabled() and not window.view.resume_button.isEnabled()
 
+    assert not window.view.estimate_button.isEnabled()
     window.pause_job()
     wait_state(qtbot, window, stubs, pb.JOB_STATE_PAUSED)
     assert window.view.resume_button.isEnabled() and not window.view.pause_button.isEnabled()
+    # Paused, how sure is each wall colour? The table shows each value +- its standard error.
+    window.view.estimate_button.click()
+    qtbot.waitUntil(lambda: all("+-" in window.params.table.item(window.params.row_of(k),
+                                                                  CURRENT).text()
+                                for k in WALLS), timeout=120000)
+    assert "standard errors: 9 components" in window.view.result_label.toolTip()
     window.resume_job()
     wait_state(qtbot, window, stubs, pb.JOB_STATE_RUNNING)
     window.view.cancel_button.click()

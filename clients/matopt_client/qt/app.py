@@ -153,6 +153,7 @@ class MainWindow(SceneControl, JobControl, ResultsControl, QMainWindow):
         self.view.resume_button.clicked.connect(self.resume_job)
         self.view.cancel_button.clicked.connect(self.cancel_job)
         self.view.export_button.clicked.connect(self.export_dialog)
+        self.view.estimate_button.clicked.connect(self.estimate_errors)
         self.view.use_result_button.clicked.connect(self.use_result_as_start)
         self.view.sensor.currentIndexChanged.connect(lambda _: self._sensor_changed())
         self.view.best_radio.toggled.connect(lambda _: self._which_changed())
@@ -334,6 +335,8 @@ class MainWindow(SceneControl, JobControl, ResultsControl, QMainWindow):
         has_result = self.result is not None
         self.export_action.setEnabled(has_result)
         self.view.export_button.setEnabled(has_result)
+        self.view.estimate_button.setEnabled(connected and job is not None
+                                             and job.state == pb.JOB_STATE_PAUSED)
         self.view.use_result_button.setEnabled(has_result and self.scene is not None
                                                and job is not None
                                                and job.spec.scene == self.scene.name)

@@ -123,9 +123,15 @@ class JobView(QWidget):
         self.export_button = QPushButton("Export…")
         self.export_button.setToolTip("write parameters.json, the images and history.csv to a "
                                       "folder (as 'matopt job export')")
+        self.estimate_button = QPushButton("Standard errors")
+        self.estimate_button.setToolTip("estimate now how sure each value of the shown "
+                                         "iteration is (a paused job; an ended job's results "
+                                         "show them already)")
         self.use_result_button.setEnabled(False)
         self.export_button.setEnabled(False)
+        self.estimate_button.setEnabled(False)
         bottom.addWidget(self.result_label, 1)
+        bottom.addWidget(self.estimate_button)
         bottom.addWidget(self.use_result_button)
         bottom.addWidget(self.export_button)
         layout.addLayout(bottom)

@@ -20,6 +20,8 @@ from matopt_client.qt.images import read_image
 from matopt_client.qt.worker import CALL_TIMEOUT_S
 from matopt_api.v1 import matopt_pb2 as pb
 
+ESTIMATE_TIMEOUT_S = 600.0
+
 
 class ResultsControl:
     """Showing and exporting a job's results (a part of MainWindow)."""
@@ -39,7 +41,11 @@ class ResultsControl:
                                      or self.job.state in mc.TERMINAL_STATES):
             self._fetch_result()
 
-    def _fetch_result(self) -> None:
+    def estimate_errors(self) -> None:
+        """The shown iteration of a paused job with its standard errors, estimated now."""
+        self._fetch_result(estimate=True)
+
+    def _fetch_result(self, estimate: bool = False) -> None:
         if self.job is None:
             return
         name, which = self.job.name, self.view.which()
@@ -51,6 +57,11 @@ class ResultsControl:
             label = "best" if result.which != pb.WHICH_LAST else "last"
             self.view.result_label.setText(f"{label}: iteration {result.iteration}, "
                                            f"loss {result.loss:.4g}")
+            self.view.result_label.setToolTip("\n".join(result.standard_error_notes))
+            if estimate:
+                self.status(f"standard errors of the {label} iteration estimated"
+                            + (": " + result.standard_error_notes[-1]
+                               if result.standard_error_notes else ""))
             self.params.show_current(result.parameters)
             self.view.show_gains(result.gains, f"{label} iteration {result.iteration}")
             self._update_images()
@@ -65,11 +76,17 @@ class ResultsControl:
                 self._update_images()
                 self._update_actions()
 
-        self._call(f"fetching the result of {name}",
+        # An estimate waits for a worker's turn, then takes up to a minute of it.
+        self._call(f"{'estimating the standard errors' if estimate else 'fetching the result'}"
+                   f" of {name}",
                    lambda c: c.jobs.GetJobResult(pb.GetJobResultRequest(
-                       name=name, which=pb.WHICH_LAST if which == "last" else pb.WHICH_BEST),
-                       timeout=CALL_TIMEOUT_S),
-                   done, failed, quiet_codes=(grpc.StatusCode.FAILED_PRECONDITION,))
+                       name=name, which=pb.WHICH_LAST if which == "last" else pb.WHICH_BEST,
+                       estimate_standard_errors=estimate),
+                       timeout=ESTIMATE_TIMEOUT_S if estimate else CALL_TIMEOUT_S),
+                   # a refused estimate (the job resumed meanwhile) is a banner, and the
+                   # result shown stays
+                   done, None if estimate else failed,
+                   quiet_codes=() if estimate else (grpc.StatusCode.FAILED_PRECONDITION,))
 
     def use_result_as_start(self) -> None:
         """The shown result becomes the next job's start: its values go into the table
