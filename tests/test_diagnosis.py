@@ -167,6 +167,11 @@ def test_a_drift_on_a_consistent_gradient_is_still_moving():
     assert steered(rgb)[0] is True
     # Too few steps (a job resumed on this worker near its end) leave it as it was.
     assert steered([np.array([0.1])] * 4) is None
+    # Held steps (a choice zeroed the gradient, recorded as NaN) are not the images': the
+    # consistent gradient between them still shows, and too few of them say nothing.
+    held = [np.array([np.nan])] * 3
+    assert steered([x for g in steady[-10:] for x in (g, *held)])[0] is True
+    assert steered([x for g in steady[-4:] for x in (g, *held)]) is None
     assert any("still moving" in n for n in _notes(None))
 
 

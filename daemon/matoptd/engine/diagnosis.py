@@ -256,6 +256,9 @@ def steered(gradients: list[np.ndarray]) -> tuple[bool, np.ndarray, np.ndarray] 
     if len(gradients) < 5:
         return None
     g = np.array([np.ravel(x) for x in gradients], dtype=np.float64)
+    g = g[np.all(np.isfinite(g), axis=1)]  # a held step's (NaN) is not the images' gradient
+    if len(g) < 5:
+        return None
     mean, se = g.mean(axis=0), g.std(axis=0, ddof=1) / np.sqrt(len(g))
     return bool(np.any(np.abs(mean) > 2 * se)), mean, se
 

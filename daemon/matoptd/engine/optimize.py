@@ -156,6 +156,9 @@ class Optimization:
         # the steps were (uncertainty)
         self.gradients: dict[str, list[np.ndarray]] = {}
         self._stepped: list[dict[str, object]] = []
+        # per key, the iterations whose step a choice held (eta_hold, eta_differences' sparse
+        # steps): no step was taken, and the zeroed gradient is not the images' (recorded as NaN)
+        self.held: dict[str, list[int]] = {}
 
         saved = _read(checkpoint)
         self.choices = choices if choices is not None else build(settings)
@@ -360,8 +363,10 @@ class Optimization:
         self.frozen.clear()
         self._call("on_gradient", i, sensors)
         self._sanitize_gradients()
-        self._stepped.append({k: dr.grad(self.opt[k]) for k in self.rates
-                              if dr.width(self.opt[k]) <= SMALL})
+        for key in self.frozen:
+            self.held.setdefault(key, []).append(i)
+        self._stepped.append({k: None if k in self.frozen else dr.grad(self.opt[k])
+                              for k in self.rates if dr.width(self.opt[k]) <= SMALL})
         self.opt.step()
         self._call("after_step", i)
         for key, (lo, hi) in self.bounds.items():
@@ -383,7 +388,7 @@ class Optimization:
     def flush(self, *also) -> None:
         """Evaluates the pending guard counts and gradients (and ``also``) and adds them to
         the counters and the gradient records."""
-        grads = [g for stepped in self._stepped for g in stepped.values()]
+        grads = [g for stepped in self._stepped for g in stepped.values() if g is not None]
         dr.eval(*also, *(count for _, count in self._pending), *grads)
         for counter, count in self._pending:
             setattr(self, counter, getattr(self, counter) + round(count[0]))
@@ -391,7 +396,8 @@ class Optimization:
         for stepped in self._stepped:
             for key, g in stepped.items():
                 kept = self.gradients.setdefault(key, [])
-                kept.append(np.array(g, dtype=np.float64))
+                kept.append(np.full(dr.width(self.opt[key]), np.nan) if g is None
+                            else np.array(g, dtype=np.float64))
                 del kept[:-keep]
         self._pending.clear()
         self._stepped.clear()
@@ -509,6 +515,7 @@ class Optimization:
             arrays[f"t{n}"] = np.asarray(t, dtype=np.uint32)
             arrays[f"m{n}"] = np.asarray(m, dtype=np.float32)
             arrays[f"v{n}"] = np.asarray(v, dtype=np.float32)
+            arrays[f"held{n}"] = np.array(self.held.get(key, []), dtype=np.int64)
             for prefix, kept in (("best", self.best), ("last", self.last)):
                 held = self._kept(kept)
                 if key in held:
@@ -555,6 +562,8 @@ class Optimization:
             self.opt.state[key] = (value, promoted, lr,
                                    (type(t)(z[f"t{n}"]), type(m)(z[f"m{n}"]),
                                     type(v)(z[f"v{n}"]), vmax))
+            if f"held{n}" in z:  # (absent from checkpoints before it was kept)
+                self.held[key] = z[f"held{n}"].tolist()
             for prefix in kept:
                 if f"{prefix}{n}" in z:
                     kept[prefix][key] = z[f"{prefix}{n}"]
