@@ -17,10 +17,8 @@ from PySide6.QtWidgets import QFileDialog
 from matopt_client import client as mc
 from matopt_client.export import export_job
 from matopt_client.qt.images import read_image
-from matopt_client.qt.worker import CALL_TIMEOUT_S
+from matopt_client.qt.worker import CALL_TIMEOUT_S, ESTIMATE_TIMEOUT_S
 from matopt_api.v1 import matopt_pb2 as pb
-
-ESTIMATE_TIMEOUT_S = 600.0
 
 
 class ResultsControl:
@@ -76,7 +74,6 @@ class ResultsControl:
                 self._update_images()
                 self._update_actions()
 
-        # An estimate waits for a worker's turn, then takes up to a minute of it.
         self._call(f"{'estimating the standard errors' if estimate else 'fetching the result'}"
                    f" of {name}",
                    lambda c: c.jobs.GetJobResult(pb.GetJobResultRequest(

@@ -29,6 +29,8 @@ Failed = Callable[[BaseException], None]
 # Unary calls get a deadline so that a daemon that stopped answering (but still holds the
 # TCP connection) shows up as an error instead of a call that never returns.
 CALL_TIMEOUT_S = 30.0
+# A paused job's standard errors on request wait for a worker's turn, then take up to a minute.
+ESTIMATE_TIMEOUT_S = 600.0
 
 
 class _Call(QRunnable):

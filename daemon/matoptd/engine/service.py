@@ -281,7 +281,6 @@ class MitsubaEngine:
         self.start(run, settings, checkpoint)
         try:
             opt = self.runs[run].opt
-            opt.flush()
             chosen = [c for c in _chosen(opt) if c[0] == which]
             if not chosen:
                 raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")

@@ -747,13 +747,13 @@ def _adam(opt: Optimization, kept: Best) -> dict[str, Adam]:
     c = opt.settings
     per = (len(opt.references) if c.sensor_mode == "step_per_sensor"
            and len(opt.references) > 1 else 1)
-    steps = range(max(kept.iteration, 0))
+    schedule = [schedule_factor(c, i) for i in range(max(kept.iteration, 0))]
     out = {}
     for key, rate in opt.rates.items():
         _, _, _, (t, _, v, _) = opt.opt.state[key]
         recorded = opt.gradients.get(key)
         held = set(opt.held.get(key, ()))  # a held step moved nothing
-        factors = np.repeat([0.0 if i in held else schedule_factor(c, i) for i in steps], per)
+        factors = np.repeat([0.0 if i in held else f for i, f in enumerate(schedule)], per)
         out[key] = Adam(np.asarray(v, dtype=np.float64).ravel(),
                         int(np.asarray(t).ravel()[0]), rate * factors,
                         np.array([np.ravel(g) for g in recorded]) if recorded else None)
