@@ -13,11 +13,12 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import settings as api
-from matoptd.engine.choices import REGISTRY
+from matoptd.engine.choices import REGISTRY, assign_keys
 from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.linear_extinction import LinearExtinction
 from matoptd.engine.choices.log_space import LogSpace
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
+from matoptd.engine.records import ParamRecord
 
 import thesis_scenes as ts
 from conftest import Daemon, Stubs, wait_iteration, wait_state
@@ -46,39 +47,47 @@ def test_every_choice_is_on_unless_turned_off_by_name_or_all():
 SIGMA_T, GRID = "medium.sigma_t.value.value", "cloud.sigma_t.data"
 
 
-def _loop(**choices: str):
-    """What the two choices read of a loop: a homogeneous sigma_t started at 2 (rate 0.03)
-    and a grid's sigma_t."""
+def _records(settings: api.JobSettings, starts: dict[str, np.ndarray]) -> dict:
+    """A record per parameter, as the loop makes them (scene values at the starts)."""
+    return {p.key: ParamRecord(p.key, "scalar", p.lo, p.hi, p.learning_rate, starts[p.key],
+                               starts[p.key]) for p in settings.parameters}
+
+
+def _set_up(choices: list, settings: api.JobSettings, records: dict, state=None) -> None:
+    ctx = types.SimpleNamespace(settings=settings)
+    assign_keys(ctx, choices, records)
+    for c in choices:
+        c.setup(ctx, {k: records[k] for k in c.keys}, state)
+
+
+def _extinctions(**choices: str):
+    """A homogeneous sigma_t started at 2 (rate 0.03) and a grid's sigma_t."""
     inf = float("inf")
     settings = api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
                                [api.ParameterSetting(SIGMA_T, 0.03, 0.0, inf),
                                 api.ParameterSetting(GRID, 0.2, 0.0, inf)], choices=choices)
-    return settings, types.SimpleNamespace(
-        settings=settings, parameters={p.key: p for p in settings.parameters},
-        starts={SIGMA_T: np.array([2.0]), GRID: np.full(8, 2.0)},
-        rates={SIGMA_T: 0.03, GRID: 0.2}, current={})
+    return settings, _records(settings, {SIGMA_T: np.array([2.0]), GRID: np.full(8, 2.0)})
 
 
 def test_a_homogeneous_extinction_steps_linearly_at_a_share_of_its_value_or_start():
-    settings, loop = _loop()
+    settings, records = _extinctions()
     linear, logs = LinearExtinction(settings), LogSpace(settings)
-    linear.setup(loop, None)
-    logs.setup(loop, None)
-    assert logs.keys == {GRID}  # a grid's texels span decades: log space still
-    assert loop.rates[SIGMA_T] == pytest.approx(0.03 * 2.0)
+    _set_up([linear, logs], settings, records)
+    assert logs.keys == [GRID]  # a grid's texels span decades: log space still
+    record = records[SIGMA_T]
+    assert linear.rate(record, 0.03) == pytest.approx(0.03 * 2.0)
     # Below its start, the start's share (absolute steps); above it, the value's (relative).
     for value, rate in ((0.4, 0.06), (0.0, 0.06), (50.0, 1.5)):
-        loop.current = {SIGMA_T: np.array([value])}
-        assert linear.before_render(loop, 1) is False
-        assert loop.rates[SIGMA_T] == pytest.approx(rate)
-    assert loop.rates[GRID] == 0.2
+        record.current = np.array([value])
+        assert linear.rate(record, 0.03) == pytest.approx(rate)
+    assert linear.keys == [SIGMA_T]
     assert "0.06 per step at full rate below the start" in linear.notes()[0]
 
-    # Turned off, log space takes sigma_t back and its rate is the rate given.
-    settings, loop = _loop(linear_extinction="off")
-    logs = LogSpace(settings)
-    logs.setup(loop, None)
-    assert logs.keys == {SIGMA_T, GRID} and loop.rates[SIGMA_T] == 0.03
+    # Turned off, log space takes sigma_t back (it yields only to a linear_extinction on).
+    settings, records = _extinctions(linear_extinction="off")
+    linear, logs = LinearExtinction(settings), LogSpace(settings)
+    _set_up([linear, logs], settings, records)
+    assert logs.keys == [SIGMA_T, GRID] and logs.rates[SIGMA_T] == 0.03
 
 
 def _path(values: list[float], rate: float = 0.1) -> Path:
@@ -278,17 +287,16 @@ def test_the_hold_restores_where_it_stood():
         api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
         [api.ParameterSetting("obj.eta", 0.01, 1.001, 4.0),
          api.ParameterSetting("m.albedo.value.value", 0.03, 0.0, 1.0)], iterations=100)
-    loop = types.SimpleNamespace(
-        parameters={p.key: p for p in settings.parameters}, settings=settings,
-        starts={"obj.eta": np.array([1.5]), "m.albedo.value.value": np.array([0.1] * 3)})
+    records = _records(settings, {"obj.eta": np.array([1.5]),
+                                  "m.albedo.value.value": np.array([0.1] * 3)})
     hold = EtaHold(settings)
-    hold.setup(loop, None)
+    _set_up([hold], settings, records)
     assert hold.applies and hold.released == -1
     for n in range(WINDOW):
         hold.paths["m.albedo.value.value"].add(np.array([0.1 + 0.03 * n] * 3), 0.03)
     hold.released = 42
     again = EtaHold(settings)
-    again.setup(loop, hold.state())
+    _set_up([again], settings, records, hold.state())
     assert again.released == 42 and "released at iteration 42" in again.why
     path = again.paths["m.albedo.value.value"]
     assert len(path.values) == WINDOW and path.rates == [0.03] * WINDOW

@@ -1,5 +1,5 @@
 """The standard errors' Jacobian takes one render pass per component, but a colour's three
-components share one pass where the render keeps colour channels apart (engine/uncertainty.py,
+components share one pass where the render keeps colour channels apart (engine/jacobian.py,
 ``_passes``): each component's column must then be exactly what its own pass gives, and a
 scene that mixes channels must not be packed. Both of a column's estimates come from one pass
 at twice the samples where the integrator allows (engine/split_samples.py): they must be
@@ -16,8 +16,8 @@ mi = pytest.importorskip("mitsuba")
 @pytest.fixture(scope="module")
 def rgb():
     mi.set_variant("llvm_ad_rgb")
-    from matoptd.engine import uncertainty
-    return uncertainty
+    from matoptd.engine import jacobian
+    return jacobian
 
 
 def _cornell(size: int = 32):

@@ -17,7 +17,7 @@ import math
 import os
 import re
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
 from matopt_client import client as mc
@@ -37,6 +37,7 @@ class Choices:
     losses: tuple[str, ...]
     schedules: tuple[str, ...]
     sensor_modes: tuple[str, ...]
+    loss_titles: dict[str, str] = field(default_factory=dict)  # the daemon's line per loss
 
 
 def choices(info: pb.ServerInfo) -> Choices:
@@ -50,7 +51,8 @@ def choices(info: pb.ServerInfo) -> Choices:
 
     return Choices(losses=names(info.losses, pb.Loss),
                    schedules=names(info.schedules, pb.Schedule),
-                   sensor_modes=names(info.sensor_modes, pb.SensorMode))
+                   sensor_modes=names(info.sensor_modes, pb.SensorMode),
+                   loss_titles=dict(info.loss_titles))
 
 
 def check_choice(setting: str, value: str, allowed: Sequence[str]) -> str:

@@ -23,9 +23,8 @@ from typing import Callable
 
 import numpy as np
 
-# Names as the API spells them (lower case of its enums' short names).
-LOSSES = ("mse", "dual_buffer", "brightness_independent_mse", "mae", "mean_bias_error",
-          "multiscale_mse")
+# Names as the API spells them (lower case of its enums' short names); the losses are
+# declared with their properties in engine/losses.py (LOSSES).
 SCHEDULES = ("cosine", "constant")
 SENSOR_MODES = ("accumulate", "step_per_sensor")
 # Mitsuba's differentiable integrators a job renders with: the scene's own when it is one of
@@ -137,7 +136,7 @@ class JobSettings:
     scene: SceneInput
     references: list[ReferenceInput]
     parameters: list[ParameterSetting]
-    loss: str = "mse"            # one of LOSSES
+    loss: str = "mse"            # one of engine/losses.LOSSES
     iterations: int = 100
     # Off: a fixed threshold ends dim scenes long before they converge (their loss is small
     # from the start), so a job runs its iterations unless its owner asks for one.

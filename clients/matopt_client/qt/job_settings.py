@@ -19,17 +19,6 @@ from PySide6.QtWidgets import (QCheckBox, QComboBox, QFormLayout, QLineEdit, QSp
 from matopt_client import workflow
 from matopt_api.v1 import matopt_pb2 as pb
 
-LOSS_TIPS = {
-    "mse": "mean squared error",
-    "dual_buffer": "two independent renders, mean((a - ref)(b - ref)): render noise does not "
-                   "bias the optimum (Deng et al. 2022); a single estimate can be negative",
-    "brightness_independent_mse": "MSE after dividing render and reference by their own means: "
-                                  "matches colour and shading, not overall brightness",
-    "mae": "mean absolute error (L1)",
-    "multiscale_mse": "MSE summed over an image pyramid (full, 1/2, 1/4, ...)",
-}
-
-
 DEFAULT = "daemon default"  # a field left to the daemon: not sent
 
 
@@ -117,7 +106,7 @@ class JobSettingsForm(QWidget):
 
     def set_choices(self, choices: workflow.Choices) -> None:
         """The names this daemon accepts (from its ServerInfo, on connecting)."""
-        _fill(self.loss, choices.losses, LOSS_TIPS)
+        _fill(self.loss, choices.losses, choices.loss_titles)
         _fill(self.schedule, choices.schedules)
         _fill(self.sensor_mode, choices.sensor_modes)
 

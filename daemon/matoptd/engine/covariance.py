@@ -1,5 +1,6 @@
 """How far a recovered value may be from the truth: the covariance of what a job ends at, from
-its images linearized at a kept iteration. Pure numpy; ``uncertainty.py`` makes the inputs.
+its images linearized at a kept iteration. Pure numpy; ``jacobian.py`` and ``uncertainty.py``
+make the inputs.
 
 A job minimizes L(u) = sum_i c_i (I_i(u) - R_i)^2 over pixel-channels i (c_i: the loss's
 weight of the pixel, its mask over the mask's sum over the sensors) in latent coordinates u

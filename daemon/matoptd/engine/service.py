@@ -188,20 +188,21 @@ class MitsubaEngine:
             opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
-        skipped = [i for i in range(len(loaded.sensors())) if i not in opt.references]
+        skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
         changed = [opt.chosen.changed] if opt.chosen.changed else []  # the scene's integrator
-        opt.notes = notes + changed + opt.choice_notes() + medium_notes(loaded, keys) + [
+        said = [line for c in opt.active for line in c.notes()]  # once, at the start
+        opt.notes = notes + changed + said + medium_notes(loaded, keys) + [
             f"gradients for: {', '.join(keys)}",
-            f"sensors rendered: {', '.join(map(str, opt.references))}"
+            f"sensors rendered: {', '.join(map(str, opt.renders.references))}"
             + (f" (not rendered: {', '.join(map(str, skipped))})" if skipped else "")]
         if checkpoint is None:
-            opt.elapsed += time.perf_counter() - began
+            opt.progress.elapsed += time.perf_counter() - began
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in keys}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in keys}
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
                              shapes, kinds, settings.max_samples)
-        return api.Started(opt.iteration, opt.integrator_name, opt.integrator_reason,
-                           list(opt.references), opt.notes, shapes, kinds, opt.status())
+        return api.Started(opt.progress.iteration, opt.integrator_name, opt.integrator_reason,
+                           list(opt.renders.references), opt.notes, shapes, kinds, opt.status())
 
     def _run(self, job: str) -> Run:
         try:
@@ -217,7 +218,7 @@ class MitsubaEngine:
         for _ in range(max(1, n)):
             s = opt.step()
             records.append(api.IterationRecord(
-                s.iteration, opt.elapsed, s.loss,
+                s.iteration, opt.progress.elapsed, s.loss,
                 {k: v for k, v in s.values.items() if v.size <= api.SMALL},
                 s.errors, s.image_error, s.gains, s.spp))
             if s.done:
@@ -225,8 +226,9 @@ class MitsubaEngine:
                 break
         # The last step's backward pass stays pending, as in a plain loop: the next iteration
         # (or a checkpoint) evaluates it. The watchdog gives a checkpoint an iteration's time.
-        return api.Progress(records, done, reason, opt.best.iteration, opt.best.loss,
-                            opt.elapsed, _counters(opt), opt.status())
+        p = opt.progress
+        return api.Progress(records, done, reason, p.best.iteration, p.best.loss, p.elapsed,
+                            _counters(opt), opt.status())
 
     def checkpoint(self, job: str) -> bytes:
         return self._run(job).opt.checkpoint()
@@ -261,13 +263,14 @@ class MitsubaEngine:
         trajectories = {k: np.array(p) for k, p in paths.items() if len(p) == len(history)}
         # Textures and grids travel as blobs, not in records: their means, as this worker saw
         # them (since the job started here), stand in for them in the trade-off check.
-        for key, means in opt.means.items():
+        for key, means in ((k, r.means) for k, r in opt.records.items()):
             if key not in trajectories and len(means) >= 20:
                 trajectories[key] = np.array(means)[:, None]
         notes = diagnosis.diagnose(
-            opt.kept, opt.last.values, [h.loss for h in history], opt.nonfinite_steps,
-            opt.skipped_steps, trajectories,
-            {k: e for k, e in errors.items() if len(e) == len(history)}, opt.gradients,
+            opt.kept, opt.progress.last.values, [h.loss for h in history],
+            opt.progress.nonfinite_steps, opt.progress.skipped_steps, trajectories,
+            {k: e for k, e in errors.items() if len(e) == len(history)},
+            {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
         return api.Finished(results, notes + shown.notes, _counters(opt))
 
@@ -309,7 +312,8 @@ def _trim_heap() -> None:
 
 
 def _counters(opt: Optimization) -> api.Counters:
-    return api.Counters(opt.nonfinite_steps, opt.skipped_steps, opt.clamped)
+    p = opt.progress
+    return api.Counters(p.nonfinite_steps, p.skipped_steps, p.clamped)
 
 
 def image(pixels: np.ndarray, sensor: int, role: str, parameter: str = "") -> api.Image:
@@ -365,9 +369,10 @@ def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[st
 def _chosen(opt: Optimization) -> list[tuple[str, Best]]:
     """The iterations a job's results show: the best, and the last run (none before the
     first)."""
-    chosen = [("best", opt.best)] if opt.best.iteration >= 0 else []
-    if opt.last.iteration >= 0:
-        chosen.append(("last", opt.last))
+    p = opt.progress
+    chosen = [("best", p.best)] if p.best.iteration >= 0 else []
+    if p.last.iteration >= 0:
+        chosen.append(("last", p.last))
     return chosen
 
 
@@ -378,14 +383,14 @@ def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
     iteration's gain, as the loss saw them); initial and reference are made once and
     shared."""
     opt = run.opt
-    ref = opt.references[sensor]
+    ref = opt.renders.references[sensor]
     reference = np.array(ref.image, dtype=np.float32)
     spp = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1], run.max_samples)
-    first = image(opt.render(opt.initial, sensor, spp), sensor, "initial")
+    first = image(opt.renders.render(opt.initial, sensor, spp), sensor, "initial")
     ref_image = image(reference, sensor, "reference")
     out = {}
     for which, it in chosen:
-        optimized = opt.render(it.values, sensor, spp, it.gains)  # as the loss saw it
+        optimized = opt.renders.render(it.values, sensor, spp, it.gains)  # as the loss saw it
         error = np.abs(optimized - reference) * ref.mask()
         out[which] = [first, image(optimized, sensor, "optimized"), ref_image,
                       image(error, sensor, "error")]
@@ -397,7 +402,7 @@ def _results(run: Run, chosen: list[tuple[str, Best]], render: bool = True
     """For each chosen iteration: the renders per sensor (with ``render``), optimized
     textures as images, and the optimized scene."""
     opt = run.opt
-    per_sensor = [_sensor_images(run, chosen, s) for s in opt.references] if render else []
+    per_sensor = [_sensor_images(run, chosen, s) for s in opt.renders.references] if render else []
     out = []
     for which, it in chosen:
         images_ = [i for sensor in per_sensor for i in sensor[which]]
@@ -408,7 +413,7 @@ def _results(run: Run, chosen: list[tuple[str, Best]], render: bool = True
                 if texture.shape[2] == 1:
                     texture = np.repeat(texture, 3, axis=2)
                 images_.append(image(texture[..., :3], 0, "texture", key))
-        with opt.holding(it.values) as held:
+        with opt.renders.holding(it.values) as held:
             files, unplaced = scene_export.optimized_scene(run.main_xml, run.overrides, held,
                                                            it.values, run.shapes)
         out.append(api.Result(which, it.iteration, it.loss, it.values, opt.initial, images_,

@@ -1,7 +1,7 @@
 """Two independent estimates of a render, or of its derivative, from one pass of Mitsuba's
 RB integrators (prb, prb_basic, prbvolpath: ``mi.ad.integrators.common.RBIntegrator``).
 
-The standard errors (uncertainty.py) estimate each column of J twice from independent
+The standard errors (jacobian.py) estimate each column of J twice from independent
 samples, so that J's own noise drops out of the products across the two. One pass at 2s
 samples per pixel gives both: each lane is splatted into one of two films by its sample index
 within its pixel (the first s into A, the others into B), and the films are developed apart,

@@ -32,6 +32,7 @@ from typing import Callable, Iterator
 from matopt_api.costs import format_size
 
 from .. import engine_api as api
+from ..engine.losses import LOSSES
 from ..errors import Busy, InvalidArgument, ResourceExhausted
 from ..settings import JobSettings
 from .image_headers import BadHeader, ImageHeader, read_header
@@ -135,7 +136,7 @@ def job_estimate(settings: JobSettings, films: dict[int, tuple[int, int]],
         spp, field = max([(settings.spp, "spp"), *((n, f"spp_from {i}:{n}")
                                                     for i, n in settings.spp_from.items())])
         out.renders.append(Render(ref.sensor, width, height, spp, field, why,
-                                  2 if settings.loss == "dual_buffer" else 1))
+                                  LOSSES[settings.loss].renders))
         if settings.image_error_every:
             out.renders.append(Render(ref.sensor, width, height, settings.image_error_spp,
                                       "image_error_spp", why, 0))

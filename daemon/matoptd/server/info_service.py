@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from matoptd import __version__
-from matopt_api import enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from ..settings import INTEGRATORS
+from ..engine.losses import LOSSES, OBJECTIVES
+from ..settings import INTEGRATORS, SCHEDULES, SENSOR_MODES
 from .backend import Backend
 from .convert import worker_to_pb
 from .interceptors import caller
@@ -23,9 +23,9 @@ class ServerService(rpc.ServerServiceServicer):
         first = next((w for w in workers if w.variant), pb.Worker())
         return pb.ServerInfo(
             version=__version__, variant=first.variant, device=first.device, user=user,
-            workers=workers, losses=enums.short_names(pb.Loss),
-            schedules=enums.short_names(pb.Schedule),
-            sensor_modes=enums.short_names(pb.SensorMode),
+            workers=workers, losses=list(OBJECTIVES),
+            loss_titles={name: LOSSES[name].title for name in OBJECTIVES},
+            schedules=list(SCHEDULES), sensor_modes=list(SENSOR_MODES),
             integrators=list(INTEGRATORS),
             capabilities=["chunked-upload", "content-addressed-blobs", "pause-resume",
                           "checkpoint-resume", "watch", "render", "multi-user", "restart",

@@ -1,17 +1,20 @@
 """The engine's named choices: each special case of the optimization loop (optimize.py) as an
 object that declares its state and its hooks (base.py), in the order the loop calls them.
 
-The order matters where hooks meet: a colour's start is changed (black_start) before it is
-encoded; a texture's coarse level is blown up (multires, ``expand``) before its value is
-decoded, exp(u) (log_space) before the principled roughness's floor (roughness_floor); gains
-multiply the renders (exposure_gains) before eta's differences read them; eta's hold marks it
-frozen before its differences would be rendered for nothing.
+The order matters where hooks meet, and the choices that meet declare it (``after``,
+``yields_to``), which ``check_declarations`` holds against this order at import: a colour's
+start is changed (black_start) before it is encoded; a texture's coarse level is blown up
+(multires, ``expand``) before its value is decoded, exp(u) (log_space) before the principled
+roughness's floor (roughness_floor); gains multiply the renders (exposure_gains) before eta's
+differences read them; eta's hold marks it held before its differences would be rendered for
+nothing. log_space leaves a homogeneous sigma_t to linear_extinction while that is on.
 """
 
 from __future__ import annotations
 
 from ...settings import CHOICES, JobSettings
-from .base import Choice, State, overrides
+from .base import (HOLD, Begun, Choice, ConflictError, State, assign_keys, check_declarations,
+                   overrides)
 from .black_start import BlackStart
 from .depth import Depth
 from .eta_differences import EtaDifferences
@@ -31,6 +34,7 @@ REGISTRY: tuple[type[Choice], ...] = (
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"
+check_declarations(REGISTRY)
 
 
 def build(settings: JobSettings) -> list[Choice]:
@@ -38,4 +42,5 @@ def build(settings: JobSettings) -> list[Choice]:
     return [c(settings) for c in REGISTRY]
 
 
-__all__ = ["Choice", "State", "Loading", "REGISTRY", "build", "overrides"]
+__all__ = ["HOLD", "Begun", "Choice", "ConflictError", "State", "Loading", "REGISTRY",
+           "assign_keys", "build", "overrides"]

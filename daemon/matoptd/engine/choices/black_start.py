@@ -16,20 +16,21 @@ from .base import Choice
 
 class BlackStart(Choice):
     name = "black_start"
+    writes = ("start",)
 
-    def setup(self, loop, state) -> None:
-        self.keys = sorted(k for k, start in loop.starts.items()
-                           if parameters.black_tint(k, start))
+    def select(self, ctx, records):
+        return sorted(k for k, r in records.items()
+                      if r.scene is not None and parameters.black_tint(k, r.start))
+
+    def setup(self, ctx, records, state) -> None:
         self.applies = bool(self.keys)
         self.why = (f"{', '.join(self.keys)} started at {parameters.NEUTRAL_START:g} instead of "
                     "black: a black colour makes the lobes it tints black, and what they carry "
                     "gets no gradient" if self.on else
                     f"{', '.join(self.keys)} started black, as given")
         if self.on:
-            for key in self.keys:
-                p = loop.parameters[key]
-                loop.starts[key] = np.full_like(
-                    loop.starts[key], np.clip(parameters.NEUTRAL_START, p.lo, p.hi))
+            for r in records.values():
+                r.start = np.full_like(r.start, np.clip(parameters.NEUTRAL_START, r.lo, r.hi))
 
     def notes(self) -> list[str]:
         return [f"{k}: started at {parameters.NEUTRAL_START:g} instead of black: a black "

@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import integrator
-from .base import Choice
+from .base import Begun, Choice
 
 MEASURED_ABOVE = 16  # a bounded depth up to this stands as the scene says
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
@@ -38,11 +38,16 @@ SEEDS = (0x5EED_0001, 0x5EED_0002)
 class Depth(Choice):
     name = "depth"
 
-    def setup(self, loop, state) -> None:
-        chosen = loop.chosen
+    def select(self, ctx, records):
+        """Every parameter: measured with the scene's own values as well as the start."""
+        return [k for k, r in records.items() if r.scene is not None]
+
+    def setup(self, ctx, records, state) -> None:
+        self.scene_values = {k: r.scene for k, r in records.items()}
+        chosen = ctx.chosen
         depth = chosen.max_depth
         shown = "unbounded" if depth < 0 else str(depth)
-        user = "max_depth" in loop.settings.scene.overrides
+        user = "max_depth" in ctx.settings.scene.overrides
         self.applies = chosen.has_depth and (depth < 0 or depth > MEASURED_ABOVE)
         if user and self.applies:
             self.applies, self.why = False, ""
@@ -52,34 +57,33 @@ class Depth(Choice):
             return
         self.saved = state if state and "depth" in state else None
 
-    def begin(self, loop) -> None:
-        chosen = loop.chosen
+    def begin(self, ctx) -> Begun | None:
+        chosen = ctx.chosen
         depth = chosen.max_depth
         shown = "unbounded" if depth < 0 else str(depth)
         began = time.perf_counter()
         if self.saved is not None:
             cut, change, noise = int(self.saved["depth"][0]), *map(float, self.saved["figures"])
         else:
-            with loop.holding(loop.scene_values):
-                cut, change, noise = measure(loop, depth)
+            with ctx.holding(self.scene_values):
+                cut, change, noise = measure(ctx, depth)
             if cut != depth:  # the start may need more bounces than the scene's values
-                start, change_, noise_ = measure(loop, depth, cut)
+                start, change_, noise_ = measure(ctx, depth, cut)
                 if start != cut:
                     cut, change, noise = start, change_, noise_
         self.depth, self.figures = cut, (change, noise)
         self.setup_seconds = time.perf_counter() - began
         if cut != depth:
-            chosen.max_depth = cut
-            chosen.depth_origin = (f"the scene's {shown} cut: the bounces past {cut} change the "
-                                   f"image by {change:.3g} (mean square), less than the noise "
-                                   f"of the mean of the job's renders ({noise:.3g})")
             self.why = (f"max_depth {cut} instead of the scene's {shown}: the bounces past {cut} "
                         f"change the image by {change:.3g} (mean square), less than the noise "
                         f"of the mean of the job's renders ({noise:.3g})")
-        else:
-            self.why = (f"the scene's max_depth {shown} kept: cut anywhere below, the image "
-                        f"changes by more than the noise of the mean of the job's renders "
-                        f"({noise:.3g})")
+            return Begun(cut, f"the scene's {shown} cut: the bounces past {cut} change the "
+                              f"image by {change:.3g} (mean square), less than the noise of "
+                              f"the mean of the job's renders ({noise:.3g})")
+        self.why = (f"the scene's max_depth {shown} kept: cut anywhere below, the image "
+                    f"changes by more than the noise of the mean of the job's renders "
+                    f"({noise:.3g})")
+        return None
 
     def state(self):
         if not (self.on and self.applies):
@@ -88,24 +92,24 @@ class Depth(Choice):
                 "figures": np.array(self.figures, np.float64)}
 
 
-def measure(loop, depth: int, least: int = 0) -> tuple[int, float, float]:
+def measure(ctx, depth: int, least: int = 0) -> tuple[int, float, float]:
     """(the depth to render at, the mean square change its cut makes, the noise level it was
     compared with), the scene as it is now; candidates from ``least`` on."""
     def renders(d: int, seed: int) -> dict[int, np.ndarray]:
-        it = integrator.make(loop.chosen, d)
+        it = integrator.make(ctx.chosen, d)
         with dr.suspend_grad():
-            return {s: np.array(mi.render(loop.scene, loop.params, sensor=s, spp=loop.spp,
+            return {s: np.array(mi.render(ctx.scene, ctx.params, sensor=s, spp=ctx.spp,
                                           integrator=it, seed=seed), np.float32)[..., :3]
-                    for s in loop.references}
+                    for s in ctx.references}
 
-    weights = {s: r.mask() for s, r in loop.references.items()}
+    weights = {s: r.mask() for s, r in ctx.references.items()}
     total = sum(float(np.sum(w)) for w in weights.values())
 
     def mean(images: dict[int, np.ndarray]) -> float:
         return sum(float(np.sum(weights[s] * x)) for s, x in images.items()) / max(total, 1.0)
 
     a, b = renders(depth, SEEDS[0]), renders(depth, SEEDS[1])
-    noise = mean({s: (a[s] - b[s]) ** 2 / 2 for s in a}) / max(1, loop.settings.iterations)
+    noise = mean({s: (a[s] - b[s]) ** 2 / 2 for s in a}) / max(1, ctx.settings.iterations)
     candidates = [d for d in LADDER if d >= least and (depth < 0 or d < depth)]
     best, change = depth, 0.0
     lo, hi = 0, len(candidates) - 1

@@ -27,7 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import parameters
-from .base import Choice
+from .base import HOLD, Choice
 from .settling import Path
 
 # The sides take a quarter of the job's spp: both share their samples, so most noise cancels.
@@ -42,21 +42,30 @@ EVERY = 4     # once eta has settled, its difference every EVERY-th iteration
 class EtaDifferences(Choice):
     name = "eta_differences"
     wants_images = True
+    after = ("exposure_gains", "eta_hold")  # the gained renders; no differences while held
 
-    def setup(self, loop, state) -> None:
+    def select(self, ctx, records):
+        """Each eta, and the optimized widths beside it (read at every iteration)."""
+        etas = [k for k, r in records.items()
+                if r.scene is not None and parameters.dielectric_eta(k)]
+        return etas + [w for k in etas for w in parameters.microfacet_widths(k, records)]
+
+    def setup(self, ctx, records, state) -> None:
         # Per eta, the widths beside it and the values of those not optimized. Read from a
-        # traversal of their own: a key read through loop.params is marked for its update(),
+        # traversal of their own: a key read through ctx.params is marked for its update(),
         # which then fails on the keys that keep() dropped.
-        widths = mi.traverse(loop.scene)
+        widths = mi.traverse(ctx.scene)
         self.widths = {k: {w: parameters.flat(widths[w])
                            for w in parameters.microfacet_widths(k, widths.keys())}
-                       for k in loop.parameters if parameters.dielectric_eta(k)}
+                       for k in records if parameters.dielectric_eta(k)}
         del widths
+        self.optimized = [k for k in records if k not in self.widths]
+        self.ranges = {k: (r.lo, r.hi) for k, r in records.items()}
         self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.widths)}
         saved = state.get("sparse") if state else None
         self.sparse = int(saved[0]) if saved is not None else 0  # iterations not differenced
         self.applies = bool(self.widths)
-        self.integrator = loop.integrator_name
+        self.integrator = ctx.chosen.name
         self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
                                for k in self.widths)
                      + f" (every {EVERY}th iteration once it settles): {self.integrator} samples "
@@ -75,43 +84,43 @@ class EtaDifferences(Choice):
         return (f"while {' and '.join(w)} shows alpha < {parameters.SPECULAR_ALPHA:g}" if w
                 else "(a smooth dielectric)")
 
-    def on_gradient(self, loop, i: int, sensors: list[tuple[int, int]]) -> None:
-        theta = loop.current
-        spp = max(1, loop.spp // SPP_DIVISOR)
+    def on_gradient(self, ctx) -> dict[str, object]:
+        i, out = ctx.iteration, {}
+        theta = {k: ctx.value(k) for k in [*self.widths, *self.optimized]}
+        spp = max(1, ctx.spp // SPP_DIVISOR)
         for key, widths in self.widths.items():
             path = self.paths[key]
-            if key in loop.frozen or not parameters.near_specular(widths, theta):
-                path.add(loop.variable(key), 0.0 if key in loop.frozen else loop.rate(key))
+            if key in ctx.held or not parameters.near_specular(widths, theta):
+                path.add(ctx.latent(key), 0.0 if key in ctx.held else ctx.rate(key))
                 continue  # held, or the AD gradient stands
             if path.settled() and i % EVERY:
-                path.add(loop.variable(key), 0.0)
-                dr.set_grad(loop.opt[key], 0.0)  # no step without its difference
-                loop.frozen.add(key)
+                path.add(ctx.latent(key), 0.0)
+                out[key] = HOLD  # no step without its difference
                 self.sparse += 1
                 self._say()
                 continue
-            path.add(loop.variable(key), loop.rate(key))
-            p = loop.parameters[key]
+            path.add(ctx.latent(key), ctx.rate(key))
+            lo_, hi_ = self.ranges[key]
             v = float(theta[key][0])
-            lo, hi = max(v - STEP, p.lo), min(v + STEP, p.hi)
+            lo, hi = max(v - STEP, lo_), min(v + STEP, hi_)
             if not hi > lo:
                 continue
             sides = []
             for side in (lo, hi):
-                with loop.holding({key: np.array([side])}), dr.suspend_grad():
-                    sides.append({sensor: loop.sensor_images(i, n, sensor, DRAW, spp)
-                                  for n, sensor in sensors})
+                with ctx.holding({key: np.array([side])}), dr.suspend_grad():
+                    sides.append({sensor: ctx.sensor_images(n, sensor, DRAW, spp)
+                                  for n, sensor in ctx.sensors})
             slope = 0.0
             with dr.suspend_grad():
-                for _, sensor in sensors:
+                for _, sensor in ctx.sensors:
                     d = [(b - a) * (STEP / (hi - lo))
                          for a, b in zip(sides[0][sensor], sides[1][sensor])]
-                    ref = loop.references[sensor]
-                    images = loop.images[sensor]
-                    up = loop.image_loss([x + y for x, y in zip(images, d)], ref)
-                    down = loop.image_loss([x - y for x, y in zip(images, d)], ref)
+                    images = ctx.images[sensor]
+                    up = ctx.image_loss([x + y for x, y in zip(images, d)], sensor)
+                    down = ctx.image_loss([x - y for x, y in zip(images, d)], sensor)
                     slope += float((up - down).array[0]) / (2 * STEP)
-            dr.set_grad(loop.opt[key], mi.Float(slope / len(sensors)))
+            out[key] = mi.Float(slope / len(ctx.sensors))
+        return out
 
     def state(self):
         out = {"sparse": np.array([self.sparse], np.int64)}

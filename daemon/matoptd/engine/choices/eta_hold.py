@@ -18,12 +18,11 @@ texture further from the truth.
 
 from __future__ import annotations
 
-import drjit as dr
 import numpy as np
 
 from ...engine_api import SMALL
 from .. import parameters
-from .base import Choice
+from .base import HOLD, Choice
 from .settling import SETTLED, WINDOW, Path
 
 HOLD_SHARE = 0.5
@@ -32,18 +31,23 @@ HOLD_SHARE = 0.5
 class EtaHold(Choice):
     name = "eta_hold"
 
-    def setup(self, loop, state) -> None:
-        keys = list(loop.parameters)
-        self.etas = [k for k in keys if parameters.dielectric_eta(k)]
+    def select(self, ctx, records):
+        keys = [k for k, r in records.items() if r.scene is not None]
+        etas = [k for k in keys if parameters.dielectric_eta(k)]
         media = [k for k in keys if parameters.medium_property(k)]
-        widths = {w for eta in self.etas for w in parameters.microfacet_widths(eta, keys)}
-        self.others = [k for k in keys if (k in widths or k in media)
-                       and loop.starts[k].size <= SMALL] if media else []
+        widths = {w for eta in etas for w in parameters.microfacet_widths(eta, keys)}
+        others = [k for k in keys if (k in widths or k in media)
+                  and records[k].size <= SMALL] if media else []
+        return etas + others if etas and others else []
+
+    def setup(self, ctx, records, state) -> None:
+        self.etas = [k for k in records if parameters.dielectric_eta(k)]
+        self.others = [k for k in records if k not in self.etas]
         self.applies = bool(self.etas and self.others)
         saved = state.get("released") if state else None
         self.released = int(saved[0]) if saved is not None else -1  # the iteration; -1: held
         self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.others)}
-        self.last = max(1, round(HOLD_SHARE * loop.settings.iterations))
+        self.last = max(1, round(HOLD_SHARE * ctx.settings.iterations))
         self.why = (f"{', '.join(self.etas)} held at its start until "
                     f"{', '.join(self.others)} settle (each nets less than {SETTLED:g} of its "
                     f"full steps over {WINDOW} iterations; at most until iteration {self.last}): "
@@ -53,19 +57,18 @@ class EtaHold(Choice):
         if self.released >= 0:
             self.why += f"; released at iteration {self.released}"
 
-    def on_gradient(self, loop, i: int, sensors) -> None:
+    def on_gradient(self, ctx) -> dict[str, object]:
+        i = ctx.iteration
         if self.released >= 0:
-            return
+            return {}
         for key, path in self.paths.items():
-            path.add(loop.variable(key), loop.rate(key))
+            path.add(ctx.latent(key), ctx.rate(key))
         if all(p.settled() for p in self.paths.values()) or i >= self.last:
             self.released = i
             self.why += (f"; released at iteration {i} ("
                          + ("the others settled)" if i < self.last else "the hold's limit)"))
-            return
-        for key in self.etas:
-            dr.set_grad(loop.opt[key], 0.0)
-            loop.frozen.add(key)
+            return {}
+        return dict.fromkeys(self.etas, HOLD)
 
     def state(self):
         out = {"released": np.array([self.released], np.int64)}

@@ -16,6 +16,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..records import GAIN, ParamRecord
 from .base import Choice
 
 GAIN_LEARNING_RATE = 0.1  # of log(gain)
@@ -26,46 +27,52 @@ class ExposureGains(Choice):
     name = "exposure_gains"
     switchable = False
 
-    def setup(self, loop, state) -> None:
-        self.applies = loop.settings.fit_exposure
-        if not self.applies:
-            return
-        self.why = ("asked for (fit_exposure): one RGB gain per reference, fitted in log space "
-                    "from the ratio of the means of reference and first render")
-        # Adam keys of the log gains, by sensor.
-        loop.gains = {sensor: f"gain{sensor}" for sensor in loop.references}
-        for key in loop.gains.values():
-            loop.opt[key] = mi.Float(0.0, 0.0, 0.0)
-            loop.opt.set_learning_rate({key: GAIN_LEARNING_RATE})
-            loop.rates[key] = GAIN_LEARNING_RATE
+    def variables(self, ctx) -> list[ParamRecord]:
+        """A log gain per reference, u = log g (3 channels), clipped to +-GAIN_LIMIT."""
+        if not ctx.settings.fit_exposure:
+            return []
+        return [ParamRecord(f"gain{sensor}", GAIN, -GAIN_LIMIT, GAIN_LIMIT,
+                            GAIN_LEARNING_RATE, np.zeros(3, np.float32), sensor=sensor)
+                for sensor in ctx.references]
 
-    def before_render(self, loop, i: int) -> bool:
+    def select(self, ctx, records):
+        return [k for k, r in records.items() if r.is_gain]
+
+    def setup(self, ctx, records, state) -> None:
+        self.applies = ctx.settings.fit_exposure
+        self.sensors = {r.sensor: key for key, r in records.items()}  # Adam keys by sensor
+        if self.applies:
+            self.why = ("asked for (fit_exposure): one RGB gain per reference, fitted in log "
+                        "space from the ratio of the means of reference and first render")
+
+    def decode(self, key: str, latent):
+        return dr.exp(latent)
+
+    def before_render(self, ctx) -> dict[str, object]:
         """At iteration 0 each gain starts at mean(reference) / mean(render), per channel."""
-        if i != 0:
-            return False
-        for sensor, key in loop.gains.items():
-            ref = loop.references[sensor]
+        if ctx.iteration != 0:
+            return {}
+        out = {}
+        for sensor, key in self.sensors.items():
+            ref = ctx.references[sensor]
             w = ref.mask()
-            img = loop.render(loop.initial, sensor, loop.spp)
+            img = ctx.render(ctx.initial, sensor, ctx.spp)
             rendered = np.sum(w * img, axis=(0, 1))
             wanted = np.sum(w * np.asarray(ref.image), axis=(0, 1))
             ratio = np.where(rendered > 0, wanted / np.maximum(rendered, 1e-30), 1.0)
             start = np.log(np.clip(ratio, math.exp(-GAIN_LIMIT), math.exp(GAIN_LIMIT)))
-            loop.opt[key] = mi.Float(start.astype(np.float32))
-        return False
+            out[key] = mi.Float(start.astype(np.float32))
+        return out
 
-    def on_images(self, loop, sensor: int, images: list) -> list:
+    def on_images(self, ctx, sensor: int, images: list) -> list:
         """render * gain of the sensor's reference (differentiable in the log gain)."""
-        if sensor not in loop.gains:
+        if sensor not in self.sensors:
             return images
-        gain = dr.exp(loop.opt[loop.gains[sensor]])
+        key = self.sensors[sensor]
+        gain = self.decode(key, ctx.variable(key))
         return [mi.TensorXf(img.array * dr.gather(
             mi.Float, gain, dr.arange(mi.UInt32, dr.width(img.array)) % 3), img.shape)
             for img in images]
-
-    def after_step(self, loop, i: int) -> None:
-        for key in loop.gains.values():
-            loop.opt[key] = dr.clip(loop.opt[key], -GAIN_LIMIT, GAIN_LIMIT)
 
     def notes(self) -> list[str]:
         return ["exposure gains: one RGB gain per reference, fitted with the parameters (render "

@@ -89,5 +89,5 @@ class FilterScaling(Choice):
         del loaded
         return loading.reload(path)
 
-    def setup(self, loop, state) -> None:
+    def setup(self, ctx, records, state) -> None:
         pass  # decided at load (prepare_scene)

@@ -26,9 +26,11 @@ class LargeSteps(Choice):
     name = "large_steps"
     switchable = False  # JobSettings.large_steps (lambda, 0: off) asks for it
 
-    def setup(self, loop, state) -> None:
-        lam = loop.settings.large_steps
-        self.keys = [k for k in loop.parameters if k.endswith(SUFFIX)] if lam > 0 else []
+    def select(self, ctx, records):
+        return [k for k in records if k.endswith(SUFFIX)] if ctx.settings.large_steps > 0 else []
+
+    def setup(self, ctx, records, state) -> None:
+        lam = ctx.settings.large_steps
         self.applies = bool(self.keys)
         self.why = (f"asked for, lambda {lam:g}: {', '.join(self.keys)} stepped as "
                     "u = (I + lambda L) v, so a step moves the surface smoothly; Adam in its "
@@ -39,25 +41,23 @@ class LargeSteps(Choice):
             import cholespy  # noqa: F401 - mi.ad.LargeSteps imports it when built
         except ImportError:
             raise InvalidInput(MISSING) from None
-        everything = mi.traverse(loop.scene)
+        everything = mi.traverse(ctx.scene)
         self.steps = {}
-        for key in self.keys:
+        for key, r in records.items():
             faces = everything[key[: -len(SUFFIX)] + "faces"]
             # unique vertices by the scene's positions: seams and split normals stay closed
-            self.steps[key] = mi.ad.LargeSteps(mi.Float(loop.scene_values[key]), faces, lam)
-        loop.opt.uniform = True
+            self.steps[key] = mi.ad.LargeSteps(mi.Float(r.scene), faces, lam)
+        self.adam_uniform = True
 
     def encode(self, key: str, value: np.ndarray) -> np.ndarray:
-        if key not in self.keys:
-            return value
         return parameters.flat(self.steps[key].to_differential(mi.Float(value)))
 
     def variable(self, key: str, latent: np.ndarray):
-        return mi.Float(latent) if key in self.keys else None
+        return mi.Float(latent)
 
     def expand(self, key: str, latent):
-        return self.steps[key].from_differential(latent) if key in self.keys else latent
+        return self.steps[key].from_differential(latent)
 
     def bounds(self, key: str, lo: float, hi: float) -> tuple[float, float]:
         """u is no position: a range given for the vertices does not bound it."""
-        return (-np.inf, np.inf) if key in self.keys else (lo, hi)
+        return -np.inf, np.inf

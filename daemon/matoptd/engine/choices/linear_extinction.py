@@ -29,29 +29,25 @@ from .base import Choice
 class LinearExtinction(Choice):
     name = "linear_extinction"
 
-    def setup(self, loop, state) -> None:
-        self.starts = {k: float(loop.starts[k][0]) for k in loop.parameters
-                       if parameters.homogeneous_extinction(k, loop.starts[k].size)}
-        self.base = {k: loop.rates[k] for k in self.starts}
+    def select(self, ctx, records):
+        return [k for k, r in records.items()
+                if r.scene is not None and parameters.homogeneous_extinction(k, r.size)]
+
+    def setup(self, ctx, records, state) -> None:
+        self.starts = {k: float(r.start[0]) for k, r in records.items()}
+        self.base = {k: r.rate for k, r in records.items()}
         self.applies = bool(self.starts)
         keys = ", ".join(sorted(self.starts))
         self.why = (f"{keys} stepped linearly, by its rate times the larger of its value and its "
                     "start: log space's relative steps shrink as it falls and leave it along the "
                     "valley it shares with an interface's eta and roughness" if self.on else
                     f"{keys} stepped as log_space says")
-        if self.on:
-            self._scale(loop)
 
-    def before_render(self, loop, i: int) -> bool:
-        self._scale(loop)
-        return False
-
-    def _scale(self, loop) -> None:
+    def rate(self, record, rate: float) -> float:
         # current holds theta_{i-1} (read with the last loss): no extra sync for the value
-        for key, start in self.starts.items():
-            value = loop.current.get(key)
-            now = float(value[0]) if value is not None else start
-            loop.rates[key] = self.base[key] * max(now, start, 1e-30)
+        start = self.starts[record.key]
+        now = float(record.current[0]) if record.current is not None else start
+        return rate * max(now, start, 1e-30)
 
     def notes(self) -> list[str]:
         return [f"{k}: stepped linearly, its rate {self.base[k]:g} a share of the larger of its "

@@ -27,14 +27,15 @@ LATENT_LIMIT = 40.0  # |u| bound: e^40 ~ 2e17, far past any scene
 
 class LogSpace(Choice):
     name = "log_space"
+    yields_to = ("linear_extinction",)  # which steps a homogeneous sigma_t apart, while on
 
-    def setup(self, loop, state) -> None:
-        linear = self.settings.choice_on("linear_extinction")  # it steps those apart
-        self.keys = {k for k, p in loop.parameters.items()
-                     if parameters.log_space(k, p.lo, p.hi) and not (
-                         linear and parameters.homogeneous_extinction(k, loop.starts[k].size))}
-        self.rates = {k: loop.parameters[k].learning_rate for k in self.keys}
-        self.ranges = {k: (loop.parameters[k].lo, loop.parameters[k].hi) for k in self.keys}
+    def select(self, ctx, records):
+        return [k for k, r in records.items()
+                if r.scene is not None and parameters.log_space(k, r.lo, r.hi)]
+
+    def setup(self, ctx, records, state) -> None:
+        self.rates = {k: r.rate for k, r in records.items()}
+        self.ranges = {k: (r.lo, r.hi) for k, r in records.items()}
         self.applies = bool(self.keys)
         self.why = (f"{', '.join(sorted(self.keys))} stepped as u = log v: a step is the same "
                     "relative change at any scale and never crosses 0, so their rates are "
@@ -43,24 +44,18 @@ class LogSpace(Choice):
                     "their rates, clipped to their ranges)")
 
     def encode(self, key: str, value: np.ndarray) -> np.ndarray:
-        if key not in self.keys:
-            return value
         return np.clip(np.log(np.maximum(value, LOG_FLOOR)), *self.bounds(key, 0.0, 0.0))
 
     def decode(self, key: str, latent):
-        return dr.exp(latent) if key in self.keys else latent
+        return dr.exp(latent)
 
     def bounds(self, key: str, lo: float, hi: float) -> tuple[float, float]:
         """[min, max] of u = log v: the width floor where a width's range starts at 0."""
-        if key not in self.keys:
-            return lo, hi
         v_lo, v_hi = parameters.log_bounds(key, *self.ranges[key])
         return (math.log(v_lo) if v_lo > 0 else -LATENT_LIMIT,
                 math.log(v_hi) if math.isfinite(v_hi) else LATENT_LIMIT)
 
     def kept(self, key: str, kept):
-        if key not in self.keys:
-            return kept
         lo, hi = parameters.log_bounds(key, *self.ranges[key])
         return dataclasses.replace(kept, lo=lo, hi=hi, log=True)
 

@@ -18,7 +18,6 @@ means. A given start without such detail (a constant) goes coarse to fine as the
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -30,24 +29,26 @@ from .base import Choice
 class Multires(Choice):
     name = "multires"
 
-    def setup(self, loop, state) -> None:
-        self.loop = loop
-        value = loop.settings.choice_value(self.name)
-        self.mode, count = coarse_to_fine(value) if self.on else ("nearest", 0)
+    def _count(self) -> tuple[str, int]:
+        return coarse_to_fine(self.settings.choice_value(self.name)) if self.on else ("nearest", 0)
+
+    def select(self, ctx, records):
+        count = self._count()[1]
+        return [k for k, r in records.items() if len(multires.levels(r.shape, count)) >= 2]
+
+    def setup(self, ctx, records, state) -> None:
+        self.iterations = ctx.settings.iterations
+        self.mode, count = self._count()
         self.levels: dict[str, list[tuple[int, ...]]] = {}
         given: list[str] = []  # started from given values, left at full resolution
-        for key, p in loop.parameters.items():
-            value_ = loop.params[key]
-            shapes = multires.levels(tuple(int(n) for n in value_.shape)
-                                     if dr.is_tensor_v(value_) else (), count)
-            if len(shapes) < 2:
-                continue
-            if (p.initial is not None and loop.settings.choice_value(self.name) == "on"
-                    and _detailed(loop.starts[key], shapes)):
+        for key, r in records.items():
+            shapes = multires.levels(r.shape, count)
+            if (r.initial_given and ctx.settings.choice_value(self.name) == "on"
+                    and _detailed(r.start, shapes)):
                 given.append(key)
             else:
                 self.levels[key] = shapes
-        keys = sorted(self.levels)
+        keys = self.keys = sorted(self.levels)
         saved = state.get("levels") if state else None
         self.level = ({k: int(n) for k, n in zip(keys, saved)} if saved is not None
                       else dict.fromkeys(keys, 0))
@@ -55,7 +56,7 @@ class Multires(Choice):
         self.applies = bool(keys or given)
         self.why = "; ".join(
             ([f"optimized coarse to fine ({self._steps()}, {self.mode} upsampling; the full "
-              f"resolution from iteration {loop.settings.iterations // 2}): a coarse texel's "
+              f"resolution from iteration {self.iterations // 2}): a coarse texel's "
               "gradient is the sum of a block's, far less noisy, so the pattern's low "
               "frequencies settle before its detail"] if keys and self.on else
              [f"{', '.join(keys)} optimized at full resolution throughout"] if keys else [])
@@ -69,8 +70,6 @@ class Multires(Choice):
                          for k in sorted(self.levels))
 
     def variable(self, key: str, latent: np.ndarray):
-        if key not in self.levels:
-            return None
         shapes, level = self.levels[key], self.level[key]
         self._map(key, level)
         return self._tensor(key, multires.downsample(latent, shapes[-1], shapes[level]))
@@ -91,20 +90,18 @@ class Multires(Choice):
         made = self.maps.get(key)
         return latent if made is None else multires.upsample(latent, self.levels[key][-1], made)
 
-    def before_render(self, loop, i: int) -> bool:
-        """Moves each texture or grid to the next level when iteration i reaches it (the
+    def before_render(self, ctx) -> dict[str, object]:
+        """Moves each texture or grid to the next level when the iteration reaches it (the
         coarse values carried over, upsampled as the renders saw them)."""
-        changed = False
+        changed = {}
         for key, shapes in self.levels.items():
-            level = multires.level_at(i, loop.settings.iterations, len(shapes))
+            level = multires.level_at(ctx.iteration, self.iterations, len(shapes))
             old = self.level[key]
             if level > old:
-                current = parameters.flat(loop.opt[key])
+                current = parameters.flat(ctx.variable(key))
                 self._map(key, level)
-                loop.opt[key] = self._tensor(key, multires.apply(
+                changed[key] = self._tensor(key, multires.apply(
                     current, multires.taps(shapes[level], shapes[old], self.mode)))
-                loop.opt.set_learning_rate({key: loop.rates[key]})
-                changed = True
         return changed
 
     def state(self):
@@ -114,7 +111,7 @@ class Multires(Choice):
         return [f"{key}: optimized coarse to fine ("
                 + " -> ".join("x".join(map(str, sh[:-1])) for sh in shapes)
                 + f", {self.mode} upsampling; the full resolution from iteration "
-                f"{self.loop.settings.iterations // 2}): the pattern's low frequencies settle "
+                f"{self.iterations // 2}): the pattern's low frequencies settle "
                 "before its detail" for key, shapes in sorted(self.levels.items())]
 
 

@@ -27,9 +27,14 @@ from .base import Choice
 class RoughnessFloor(Choice):
     name = "roughness_floor"
 
-    def setup(self, loop, state) -> None:
-        self.floors = {k: f for k, p in loop.parameters.items()
-                       if (f := parameters.shown_floor(k, p.lo)) > 0}
+    after = ("log_space",)  # the floor is v's: after u = log v is decoded
+
+    def select(self, ctx, records):
+        return [k for k, r in records.items()
+                if r.scene is not None and parameters.shown_floor(k, r.lo) > 0]
+
+    def setup(self, ctx, records, state) -> None:
+        self.floors = {k: parameters.shown_floor(k, r.lo) for k, r in records.items()}
         self.applies = bool(self.floors)
         keys = ", ".join(sorted(self.floors))
         self.why = (f"{keys} rendered and reported at no less than {parameters.ROUGHNESS_FLOOR:g}"
@@ -40,10 +45,8 @@ class RoughnessFloor(Choice):
                     "is 0")
 
     def decode(self, key: str, latent):
-        floor = self.floors.get(key, 0.0)
-        if not floor:
-            return latent
+        floor = self.floors[key]
         return latent + dr.detach(dr.maximum(latent, floor) - latent)
 
     def kept(self, key: str, kept):
-        return dataclasses.replace(kept, floor=self.floors[key]) if key in self.floors else kept
+        return dataclasses.replace(kept, floor=self.floors[key])

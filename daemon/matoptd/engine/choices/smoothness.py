@@ -19,23 +19,26 @@ class Smoothness(Choice):
     name = "smoothness"
     switchable = False
 
-    def setup(self, loop, state) -> None:
-        self.weights = {k: p.smoothness for k, p in loop.parameters.items() if p.smoothness > 0}
+    def select(self, ctx, records):
+        return [k for k, r in records.items() if r.smoothness > 0]
+
+    def setup(self, ctx, records, state) -> None:
+        self.weights = {k: r.smoothness for k, r in records.items()}
         self.applies = bool(self.weights)
         self.why = "asked for: " + ", ".join(f"{k} weight {w:g}"
                                              for k, w in sorted(self.weights.items()))
         self._pairs: dict[tuple[str, tuple[int, ...]], tuple[mi.UInt32, mi.UInt32]] = {}
 
-    def on_loss(self, loop):
+    def on_loss(self, ctx):
         term = 0.0
         for key, weight in self.weights.items():
-            u = loop.opt[key]
+            u = ctx.variable(key)
             shape = tuple(int(n) for n in u.shape)
             if (key, shape) not in self._pairs:
                 a, b = multires.neighbours(shape)
                 self._pairs[key, shape] = (mi.UInt32(a), mi.UInt32(b))
             a, b = self._pairs[key, shape]
-            v = loop.decoded(key, u.array)
+            v = ctx.decoded(key, u.array)
             diff = dr.gather(mi.Float, v, a) - dr.gather(mi.Float, v, b)
             term += weight * dr.mean(dr.square(diff), axis=None)
         return term

@@ -1,0 +1,457 @@
+"""J, the derivative of each rendered pixel with respect to each component of a kept
+iteration (in the latent coordinates Adam steps on), with the render noise and residual it is
+read against: what ``uncertainty.py`` turns into standard errors (the algebra is in
+``covariance.py``).
+
+J comes one pass per component (a colour's three in one pass where the render keeps channels
+apart: ``_passes``): Mitsuba's forward mode (``render_forward``) where the integrator has it,
+else a central difference of two renders with the same samples. prbvolpath has no forward
+mode; a dielectric's eta is differenced always: near the specular limit prb's derivative
+misses where the refracted rays go, and elsewhere it agrees with the difference but is far
+noisier (a rough glass ball at 64 spp: J^T J to within 67% against 10%). Each column is
+estimated twice from independent samples, and only products across the two enter J^T J, so
+J's own noise does not inflate it; with prb, prb_basic and prbvolpath both estimates come from
+one pass at twice the samples, and every forward pass of a round replays one primal pass
+(split_samples.py). A column whose J^T J its noise still swamps gets more samples
+(``linearize``). A gain's column is the gained render's channel itself. A texture or grid
+enters as its mean level per channel (one direction: every texel moved together), which is
+what trades against a scalar (a medium's albedo grid against its sigma_t); a standard error
+per texel would take one pass per texel.
+
+The render noise (S_r) and the residual of the mean render (S_R: the reference's own noise
+and what the scene does not model) come from two more renders A, B at the job's spp:
+(A - B)^2 / 2 and (A - R)(B - R) per pixel-channel, both unbiased; the second, far the
+noisier, is pooled over the image unless it shows a misfit (covariance.residual_noise). The
+loss decides how the rows are weighed and what noise a step sees (losses.Loss).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import covariance, parameters, split_samples
+from .losses import LOSSES
+
+
+FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
+
+
+MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
+
+
+BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp follows, down to 1)
+
+
+# ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
+# base of 120 s), which an hours-long job's 10% would pass.
+BUDGET_CAP = 60.0
+
+
+SIGNAL = 8.0          # J^T J's diagonal over its noise that a component's J should reach
+
+
+MAX_SAMPLES = 64      # times the job's spp: the most samples one component's J gets
+
+
+# Central-difference steps in latent coordinates: large enough that the paths a step
+# switches (a free flight crossing the surface) do not swamp the difference with noise
+# (sigma_t's J^T J at 2% varied 100% between estimates, at 5% 6%), small enough to stay a
+# slope (a secant over +-10% of a smooth curve differs from its slope by ~0.2%).
+LOG_STEP = 0.1
+
+
+LINEAR_STEP = 0.05    # of the range (of the value's size when the range is unbounded)
+
+
+# A dielectric's eta: 4% near 1.5. Over a rough interface a difference's noise is mostly the
+# lanes whose reflect/refract choice the step flips (variance ~ step, signal^2 ~ step^2): at
+# 0.03, 3 of 20 rough glass balls (60 iterations) were left without a standard error, at 0.06 1.
+ETA_STEP = 0.06
+
+
+DRAW = 0x5EED0E55     # samples of their own, apart from any iteration's
+
+
+@dataclass
+class Quantity:
+    """One optimized parameter as the estimate sees it."""
+
+    key: str
+    value: np.ndarray      # flat, as the kept iteration shows it
+    log: bool              # optimized as u = log v
+    lo: float              # the range it is kept in (a width's floor applied when log)
+    hi: float
+    floor: float = 0.0     # the least value it is shown at (a principled roughness)
+    channels: int = 0      # > 0: a texture or grid, estimated as its mean level per channel
+    difference: bool = False  # J by a central difference (a dielectric's eta)
+    eta: bool = False      # a dielectric's eta (its difference step)
+
+
+@dataclass
+class Sensor:
+    """A sensor's reference as the loss sees it."""
+
+    reference: np.ndarray          # (H, W, 3)
+    weight: np.ndarray | None      # (H, W, 3) mask weight, None: every pixel counts
+    gain: np.ndarray | None = None  # RGB exposure gain (fit_exposure), optimized in log
+    name: str = ""
+
+
+@dataclass
+class Job:
+    """What the estimate needs from the job besides its values."""
+
+    loss: str
+    spp: int
+    seed: int
+    clamp: bool
+    seconds: float              # its optimizing time so far (J may take BUDGET of it)
+
+
+@dataclass
+class _Component:
+    name: str       # for notes: "key", "key[1]", "key (mean level, channel 0)", "gain of x[2]"
+    key: str        # the quantity's key, or "" for a gain
+    index: int      # component of the value, or channel of a level or a gain
+    sensor: int = -1  # for a gain
+
+
+def components(quantities: list[Quantity], sensors: dict[int, Sensor]) -> list[_Component]:
+    out = []
+    for q in quantities:
+        if q.channels:
+            out += [_Component(f"{q.key} (mean level" + (f", channel {c})" if q.channels > 1
+                                                          else ")"), q.key, c)
+                    for c in range(q.channels)]
+        else:
+            out += [_Component(q.key if q.value.size == 1 else f"{q.key}[{c}]", q.key, c)
+                    for c in range(q.value.size)]
+    for s, sensor in sensors.items():
+        if sensor.gain is not None:
+            out += [_Component(f"gain of {sensor.name or f'sensor {s}'}[{c}]", "", c, s)
+                    for c in range(3)]
+    return out
+
+
+@dataclass
+class Linearization:
+    """A kept iteration's images linearized (covariance.Linearized), with its components."""
+
+    components: list[_Component]
+    fit: covariance.Linearized | None  # None: too many components to estimate
+    seconds: float = 0.0
+
+
+def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
+              integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
+              job: Job) -> Linearization:
+    """J, the render noise and the residual at the values ``params`` holds (set by the
+    caller to ``quantities``' values), as H, Q and Q_R.
+
+    J is first estimated at the spp that half the budget allows (_samples); a component
+    whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
+    many a round, while the whole fits in the budget: a derivative image can be far
+    noisier than its render (a glass ball's eta at 16 spp: noise ten times the signal), and a
+    standard error from a J^T J that noise swamps would be noise too."""
+    began = time.perf_counter()
+    comps = components(quantities, sensors)
+    if len(comps) > MAX_COMPONENTS:
+        return Linearization(comps, None)
+    by_key = {q.key: q for q in quantities}
+    renders = {s: [_render(scene, params, integrator, s, job.spp, _draw(job.seed, n))
+                   for n in (0, 1)] for s in sensors}
+    full = (time.perf_counter() - began) / (2 * len(sensors))
+    began_one = time.perf_counter()
+    _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
+    one = time.perf_counter() - began_one
+    budget = min(BUDGET * job.seconds, BUDGET_CAP)
+    count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                       comps, by_key, params))
+    split = split_samples.shares_primal(integrator)
+
+    def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
+        return one + max(full - one, 0) * (s - 1) / max(job.spp - 1, 1)
+
+    def cost(s: int) -> float:  # of a pass's two estimates at s spp each
+        # split: one forward pass at 2s (its primal shared), about two renders' work;
+        # else two estimates of a primal and a forward pass (or two sides) each
+        return 2 * render(2 * s) if split else 4 * render(s)
+
+    spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
+    # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
+    columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
+    samples = np.zeros(len(comps))
+    todo = [k for k, c in enumerate(comps) if c.key]
+    together = [q for q in quantities if forward_mode(q, integrator_name)]
+    draw = 2
+    while True:
+        round_began = time.perf_counter()
+        passes = _passes(todo, comps, by_key, params)  # reads the scene: once a round
+        for s in sensors:
+            seeds = (_draw(job.seed, draw), _draw(job.seed, draw + 1))
+            traced = (split_samples.trace(scene, integrator, s, spp, seeds[0]) if split and any(
+                forward_mode(by_key[comps[ks[0]].key], integrator_name) for ks in passes)
+                else None)
+            for ks in passes:
+                q = by_key[comps[ks[0]].key]
+                pair = _columns(scene, params, integrator, integrator_name, q,
+                                [comps[k].index for k in ks], s, spp, seeds, together, traced)
+                for n, new in enumerate(pair):
+                    for k, column in zip(ks, new):
+                        old = columns[s][n][k]
+                        columns[s][n][k] = column if old is None else (
+                            (old * samples[k] + column * spp) / (samples[k] + spp))
+        samples[todo] += spp
+        draw += 2
+        fit = _linearized([_rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
+                           for s, sensor in sensors.items()], job.loss)
+        signal = np.diag(fit.hessian) / np.maximum(np.diag(fit.spread), 1e-300)
+        short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
+        # the next round: 4x the samples for the components short of SIGNAL, at what this
+        # round took per pass (a colour's three components are one) scaled by the cost model
+        # (small images cost little more at 4x the spp)
+        then = (time.perf_counter() - round_began) * (
+            len(_passes(short, comps, by_key, params)) / len(passes)) * (
+            cost(4 * spp) / cost(spp))
+        if not short or time.perf_counter() - began + then > budget:
+            break
+        todo, spp = short, spp * 4
+    return Linearization(comps, fit, time.perf_counter() - began)
+
+
+def _draw(seed: int, n: int) -> int:
+    return (seed * 1_000_003 + DRAW + 7919 * n) % 2**32
+
+
+def _samples(budget: float, passes: int, cost, spp: int) -> int:
+    """spp of each J estimate: the job's, or fewer (a power of 2, at least 1) so that
+    ``passes`` (each two estimates) take about ``budget`` seconds, ``cost(s)`` each: renders
+    cost about their time at 1 spp (tracing and launching, which small images are made of)
+    plus a share of the rest by their spp."""
+    s = spp
+    # halved while over the budget, but not where halving saves little (small images are
+    # mostly tracing and launching: 8 spp cost what 1 does, with 8 times the noise)
+    while s > 1 and passes * cost(s) > budget and cost(s // 2) < 0.8 * cost(s):
+        s //= 2
+    return s
+
+
+def _render(scene, params, integrator, sensor: int, spp: int, seed: int) -> np.ndarray:
+    with dr.suspend_grad():
+        img = mi.render(scene, params, sensor=sensor, spp=spp, integrator=integrator, seed=seed)
+    return np.array(img, dtype=np.float64)[..., :3]
+
+
+def _latent_step(q: Quantity) -> float:
+    if q.eta:
+        return ETA_STEP
+    if q.log:
+        return LOG_STEP
+    span = q.hi - q.lo
+    return LINEAR_STEP * (span if math.isfinite(span) else max(float(np.max(np.abs(q.value))),
+                                                                 0.1))
+
+
+def _tangent(q: Quantity, indices: list[int]) -> np.ndarray:
+    """The value's change per unit of the latent components ``indices`` together (v for
+    log, 1 otherwise)."""
+    t = np.zeros(q.value.size, dtype=np.float64)
+    for index in indices:
+        if q.channels:
+            t[index::q.channels] = 1.0
+        else:
+            t[index] = 1.0
+    return t * q.value if q.log else t
+
+
+def _passes(todo: list[int], comps: list[_Component], by_key: dict[str, Quantity],
+            params: mi.SceneParameters) -> list[list[int]]:
+    """The components of ``todo`` that each J pass estimates: one each, but a colour's three
+    (or an RGB texture's levels) in one pass where the render keeps colour channels apart:
+    then a pixel's red channel depends on the red component alone, so a pass that moves all
+    three at once reads each one's column off its own channel (a third of the passes)."""
+    out: dict[str, list[int]] = {}
+    singles = []
+    for k in todo:
+        q = by_key[comps[k].key]
+        if _channels_apart(q, params):
+            out.setdefault(q.key, []).append(k)
+        else:
+            singles.append([k])
+    return [*out.values(), *singles]
+
+
+def _channels_apart(q: Quantity, params: mi.SceneParameters) -> bool:
+    """Whether the render's channel c depends on component c of ``q`` alone: an RGB colour
+    (or texture) in an RGB variant, where light transport multiplies channel by channel.
+    A spectral variant mixes them (a colour is upsampled to a spectrum), and so does a
+    principled BSDF with a specular or sheen tint (its base colour's luminance tints the
+    lobes); sampling that reads a colour's luminance only moves the noise."""
+    if (q.channels or q.value.size) != 3 or q.difference or not mi.is_rgb:
+        return False
+    prefix = q.key.removesuffix("base_color.value")
+    if prefix == q.key:
+        return True
+    return all(float(np.max(np.asarray(params[prefix + name]))) == 0.0
+               for name in ("spec_tint.value", "sheen.value") if prefix + name in params)
+
+
+def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
+             indices: list[int], sensor: int, spp: int, seeds: tuple[int, int],
+             together: list[Quantity], traced: split_samples.Traced | None
+             ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, twice from
+    independent samples, from passes that move them together (several only where
+    ``_passes`` packed a colour's channels: component c is then read off channel c).
+    ``together``: every quantity whose J comes in forward mode (``forward_mode``);
+    ``traced``: this round's rays and primal pass, when the integrator's forward mode can
+    reuse them (split_samples: both estimates from one pass), else None."""
+    tangent = _tangent(q, indices)
+    if not forward_mode(q, integrator_name):
+        h = _latent_step(q)
+        sides = []
+        for sign in (-1.0, 1.0):
+            if q.log:
+                moved = q.value * np.exp(sign * h * (tangent != 0))
+            else:
+                moved = q.value + sign * h * tangent
+            # a bound is not crossed: the step shortens on that side
+            moved = np.clip(moved, max(q.lo, q.floor), q.hi)
+            params[q.key] = side = parameters.assign(params[q.key], moved)
+            dr.make_opaque(side)  # as in forward mode: one kernel for every component
+            params.update()
+            # the same samples on both sides, other samples for the other estimate
+            if split_samples.shares_primal(integrator):
+                images = split_samples.primal(split_samples.trace(
+                    scene, integrator, sensor, spp, seeds[0]), integrator)
+            else:
+                images = tuple(_render(scene, params, integrator, sensor, spp, seed)
+                               for seed in seeds)
+            sides.append((moved, images))
+        params[q.key] = parameters.assign(params[q.key], q.value)
+        params.update()
+        (a, images_a), (b, images_b) = sides
+        latent = (np.log(np.maximum(b, 1e-30)) - np.log(np.maximum(a, 1e-30))) if q.log \
+            else (b - a)
+        return tuple([_channel(image_b - image_a, index, len(indices),
+                               _width(latent, _tangent(q, [index]))) for index in indices]
+                     for image_a, image_b in zip(images_a, images_b))
+    # Every forward-mode quantity is a leaf of every pass, its tangent 0 but for q's: each
+    # pass then traces the same kernel, compiled once rather than once per quantity. Opaque:
+    # a literal value or tangent would be compiled into the kernel (0.2 s each at 128x96).
+    leaves = {}
+    for other in together:
+        leaves[other.key] = leaf = parameters.assign(params[other.key], other.value)
+        dr.make_opaque(leaf)
+        dr.enable_grad(leaf)
+        params[other.key] = leaf
+    params.update()
+    # The tangent reaches what the plugin derives from the value at update() (a dielectric's
+    # 1/eta) before the render, whose forward pass only follows edges made inside it.
+    for other in together:
+        leaf = leaves[other.key]
+        direction = parameters.assign(leaf, tangent if other.key == q.key
+                                      else np.zeros(other.value.size))
+        dr.make_opaque(direction)
+        dr.set_grad(leaf, direction)
+        dr.enqueue(dr.ADMode.Forward, leaf)
+    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+    if traced is not None:
+        images = split_samples.forward(traced, scene, integrator)
+    else:
+        images = tuple(np.array(integrator.render_forward(
+            scene, params, sensor=sensor, seed=seed, spp=spp), dtype=np.float64)[..., :3]
+            for seed in seeds)
+    for other in together:
+        params[other.key] = parameters.assign(params[other.key], other.value)
+    params.update()
+    return tuple([_channel(image, index, len(indices), 1.0) for index in indices]
+                 for image in images)
+
+
+def forward_mode(q: Quantity, integrator_name: str) -> bool:
+    """Whether ``q``'s J comes from Mitsuba's forward mode (else from central differences)."""
+    return not q.difference and integrator_name in FORWARD_MODE
+
+
+def _width(latent: np.ndarray, moved: np.ndarray) -> float:
+    """The latent distance between a difference's two sides, over the elements ``moved``."""
+    step = np.abs(latent[moved != 0])
+    return float(np.max(step)) if step.size and np.any(step) else 0.0
+
+
+def _channel(image: np.ndarray, index: int, packed: int, width: float) -> np.ndarray:
+    """A column from a pass's image: all of it for a pass of one component, else channel
+    ``index`` alone; over ``width`` (a difference's, 0: no slope)."""
+    if width <= 0:
+        return np.zeros_like(image)
+    return (image if packed == 1 else image * (np.arange(3) == index)) / width
+
+
+@dataclass
+class _Rows:
+    """One sensor's pixel-channels, flattened: two estimates of J (rows x p), the same
+    weighted by the loss (K J), the render noise and the residual per row."""
+
+    ja: np.ndarray
+    jb: np.ndarray
+    ka: np.ndarray
+    kb: np.ndarray
+    weight: np.ndarray    # the loss's own weight of each row (multiscale: its full level's)
+    noise: np.ndarray
+    residual: np.ndarray
+
+
+def _rows(index: int, sensor: Sensor, renders: list[np.ndarray],
+          pair: list[list[np.ndarray | None]],
+          comps: list[_Component], job: Job, count: int) -> _Rows:
+    gain = sensor.gain if sensor.gain is not None else np.ones(3)
+    a, b = (r * gain for r in renders)
+    ref = sensor.reference.astype(np.float64)
+    weight = (np.ones_like(ref) if sensor.weight is None
+              else sensor.weight.astype(np.float64))
+    if job.clamp:  # compared in [0, 1]: a clipped pixel has no slope
+        weight = weight * ((a + b) / 2 < 1.0)
+        ref = np.clip(ref, 0.0, 1.0)
+    estimates = []
+    for n, cols in enumerate(pair):
+        image = (a, b)[n]
+        j = [col * gain if col is not None else
+             image * ((np.arange(3) == c.index) & (c.sensor == index))
+             for col, c in zip(cols, comps)]
+        estimates.append(np.stack(j, axis=-1))  # (H, W, 3, p)
+    ja, jb = estimates
+    loss = LOSSES[job.loss]
+    if loss.images is not None:  # the images as the loss compares them
+        ja, jb, a, b, ref = loss.images(ja, jb, a, b, ref, weight)
+    noise = (a - b) ** 2 / 2
+    residual = (a - ref) * (b - ref)
+    # The loss's weight of each row, as losses._mean: sum(w x) / max(sum(w), 1), mean over
+    # sensors; a loss may weigh them its own way (multiscale_mse: K = sum_l D_l^T C_l D_l).
+    c = weight / max(float(weight.sum()), 1.0) / count
+    if loss.weigh is not None:
+        ka, kb = (loss.weigh(j, weight) / count for j in (ja, jb))
+    else:
+        ka, kb = ja * c[..., None], jb * c[..., None]
+    p = ja.shape[-1]
+    flat = (lambda x: x.reshape(-1, p))
+    return _Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(), noise.ravel(),
+                 residual.ravel())
+
+
+def _linearized(rows: list[_Rows], loss: str) -> covariance.Linearized:
+    p = rows[0].ja.shape[1]
+    h, spread, q, qr = (np.zeros((p, p)) for _ in range(4))
+    k = LOSSES[loss].step_noise
+    for r in rows:
+        h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
+        spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
+        q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
+        qr += 4 * covariance.residual_noise(r.ka, r.kb, r.noise, r.residual, r.weight)
+    return covariance.Linearized(h, q, qr, spread)

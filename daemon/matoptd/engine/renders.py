@@ -1,0 +1,109 @@
+"""A job's renders: the ones its loss compares (per iteration, seeded so that a restored job
+renders what it would have), and the primal ones off the clock (results, image error, a
+choice's measurement)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import engine_api as api
+from . import parameters
+from .losses import Loss
+
+
+@dataclass
+class Reference:
+    image: mi.TensorXf           # (H, W, 3), linear; masked pixels hold 0
+    weight: mi.TensorXf | None   # (H, W, 3) in [0, 1]: the mask (and alpha) weight, 0 where the
+                                 # reference was NaN/Inf; None when every pixel counts fully
+    name: str = ""               # the user's file name, for notes
+
+    def mask(self) -> np.ndarray:
+        """The weight as an array (ones when there is none)."""
+        if self.weight is None:
+            return np.ones(tuple(int(s) for s in self.image.shape), dtype=np.float32)
+        return np.asarray(self.weight)
+
+
+def seed(base: int, iteration: int, slot: int, slots: int) -> int:
+    return (base * 1_000_003 + iteration * slots + slot) % 2**32
+
+
+@dataclass
+class Renders:
+    """The scene, its traversal (kept to the selected keys), the integrator and references;
+    ``on_images``: the choices' map of a sensor's renders; ``restore``: the scene back to the
+    loop's theta after a render ``holding`` other values."""
+
+    scene: mi.Scene
+    params: mi.SceneParameters
+    references: dict[int, Reference]
+    settings: api.JobSettings
+    loss: Loss
+    on_images: Callable[[int, list], list]
+    restore: Callable[[], None]
+    integrator: mi.Integrator | None = None
+
+    def sensor_images(self, i: int, n: int, sensor: int, draw: int, spp: int) -> list:
+        """The renders the loss compares for slot n's sensor at iteration i, as the choices
+        make them (times the gain, ...); ``draw`` picks another set of samples."""
+        renders = self.loss.renders
+        slots = len(self.references) * renders
+        images = []
+        for b in range(renders):
+            img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
+                            integrator=self.integrator,
+                            seed=(seed(self.settings.seed, i, n * renders + b, slots) + draw)
+                            % 2**32)
+            images.append(img[..., :3] if img.shape[2] > 3 else img)
+        return self.on_images(sensor, images)
+
+    def image_loss(self, images: list, ref: Reference):
+        """The loss of a sensor's renders against its reference (both clamped to [0, 1] when
+        the job asks: an LDR comparison)."""
+        target = ref.image
+        if self.settings.clamp:
+            images = [dr.clip(img, 0.0, 1.0) for img in images]
+            target = dr.clip(target, 0.0, 1.0)
+        return self.loss.fn(images, target, ref.weight)
+
+    @contextlib.contextmanager
+    def holding(self, values: dict[str, np.ndarray]):
+        """The scene with the selected parameters set to ``values``, restored afterwards."""
+        for key, v in values.items():
+            self.params[key] = parameters.assign(self.params[key], v)
+        self.params.update()
+        try:
+            yield self.scene
+        finally:
+            self.restore()
+
+    def render(self, values: dict[str, np.ndarray], sensor: int, spp: int,
+               gains: dict[int, np.ndarray] | None = None) -> np.ndarray:
+        """A primal render with the selected parameters set to ``values``, times the sensor's
+        gain when ``gains`` has one (as the loss compares it)."""
+        with self.holding(values), dr.suspend_grad():
+            img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
+                            integrator=self.integrator,
+                            seed=seed(self.settings.seed, 0, 0, 1) + 7)
+        img = np.array(img, dtype=np.float32)[..., :3]
+        return img * gains[sensor] if gains and sensor in gains else img
+
+    def image_error(self, values: dict[str, np.ndarray],
+                    gains: dict[int, np.ndarray] | None = None) -> float:
+        """RMSE of renders (times their gains) at ``image_error_spp`` against the references,
+        each pixel by its mask weight, over all sensors."""
+        se = n = 0.0
+        for sensor, ref in self.references.items():
+            img = self.render(values, sensor, self.settings.image_error_spp, gains)
+            w = ref.mask()
+            se += float(np.sum(w * (img - np.asarray(ref.image)) ** 2))
+            n += float(np.sum(w))
+        return math.sqrt(se / max(n, 1.0))
