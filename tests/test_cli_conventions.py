@@ -177,6 +177,15 @@ def test_completion_of_job_and_scene_ids_from_the_daemon(cornell, monkeypatch):
         assert item.help == "SUCCEEDED 2/2"
 
 
+@pytest.mark.parametrize("shell", ["bash", "zsh", "fish"])
+def test_the_completion_scripts_docs_cli_md_names_are_printed(shell):
+    out = subprocess.run([sys.executable, "-m", "matopt_client.cli"], capture_output=True,
+                         text=True, timeout=60,
+                         env={**os.environ, "_MATOPT_COMPLETE": f"{shell}_source"})
+    assert out.returncode == 0 and "_matopt_completion" in out.stdout, out.stderr
+    assert f"_MATOPT_COMPLETE={shell}_source matopt" in (ROOT / "docs" / "cli.md").read_text()
+
+
 def test_completion_without_a_daemon_completes_nothing(monkeypatch):
     monkeypatch.setenv("MATOPT_SERVER", NOWHERE)
     started = time.monotonic()

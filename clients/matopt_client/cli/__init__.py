@@ -101,6 +101,9 @@ def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) 
 
     Connection options go before the command (matopt --server H:P job list) or after it.
     SCENE and JOB are full names (scenes/abc, jobs/abc) or bare ids (abc).
+
+    Shell completion of commands, options and your scene and job ids, for bash:
+    eval "$(_MATOPT_COMPLETE=bash_source matopt)" in ~/.bashrc (zsh, fish: docs/cli.md).
     """
     ctx.obj = Settings(server=server, token=token or None, tls_ca=tls_ca or None)
 

@@ -494,8 +494,6 @@ def history(name: str, as_json: bool) -> None:
 def empty_folder(path: Path, force: bool) -> None:
     """Refuses an --out folder that holds anything (without --force): another job's files
     there would be replaced, or mixed with this one's, without a word."""
-    if path.exists() and not path.is_dir():
-        raise click.BadParameter(f"'{path}' is a file, not a folder", param_hint="--out")
     if not force and path.is_dir() and any(path.iterdir()):
         raise click.BadParameter(
             f"folder '{path}' is not empty: its files would be replaced or mixed with this "
