@@ -1,7 +1,8 @@
 """What every ``matopt`` command has in common: --json, the exit statuses, completion of
 names from the daemon, and docs/cli.md written from the commands.
 
-The commands run as processes against the session's real daemon, as a script would run them.
+The commands run as processes against a real daemon (the tests' shared one), as a script
+would run them.
 """
 
 from __future__ import annotations
