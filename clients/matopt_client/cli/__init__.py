@@ -14,7 +14,6 @@ import sys
 os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 
 import click  # noqa: E402
-import grpc  # noqa: E402
 
 from matopt_client import __version__, workers
 from matopt_api.v1 import matopt_pb2 as pb
