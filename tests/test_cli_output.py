@@ -97,7 +97,24 @@ def test_progress_keeps_its_bar_within_the_width(width):
     assert len(line.split("|")[1]) >= 10, line  # the bar
     assert line.startswith("RUNNING  37%|") and "| 370/1000, loss 0.0123457" in line
     # The best loss is left out only where it would squeeze the bar.
-    assert "1234.5 s" in line and ("best 0.0111111" in line) == (width >= 80)
+    assert "1234.5 s" in line and ("best mean 0.0111111 at 369" in line) == (width >= 120)
+
+
+def test_progress_names_the_iteration_its_best_is_from():
+    """A loss below the best beside it reads as what it is: an iteration newer than the
+    daemon's last ranking, or a single loss beside a windowed mean."""
+    progress = JobProgress(interactive=False)
+    mse = job(37, 100)
+    mse.spec.loss = pb.LOSS_MSE
+    progress(pb.JobEvent(job=mse))
+    progress(pb.JobEvent(iteration=pb.IterationRecord(iteration=37, loss=0.125, seconds=2)))
+    line = progress.line(79)
+    assert "38/100, loss 0.125  2.0 s  best 0.25 at 36" in line, line
+    mse.iteration, mse.best_iteration, mse.best_loss = 38, 37, 0.125  # the daemon ranks 37
+    progress(pb.JobEvent(job=mse))
+    assert "loss 0.5  1.5 s  best 0.125 at 37" in progress.line(79)
+    progress(pb.JobEvent(job=job(38, 100)))  # dual_buffer: the daemon ranks a windowed mean
+    assert "best mean 0.25 at 37" in progress.line(79)
 
 
 @pytest.mark.parametrize("width", WIDTHS)
@@ -126,7 +143,7 @@ def test_progress_in_a_log_prints_one_line_per_tenth(capsys):
     assert "\r" not in "".join(lines) and lines[-1] == ""
     assert len(lines[:-1]) == 12  # the start, one per tenth of 10 iterations, the end
     assert lines[-2].startswith("SUCCEEDED 100%|")
-    assert lines[-2].endswith("| 10/10, loss 0.5  1.5 s  best 0.25")
+    assert lines[-2].endswith("| 10/10, loss 0.5  1.5 s  best mean 0.25 at 9")
     assert all("best" not in line for line in lines[:-2])  # not computed from the records
 
 

@@ -110,7 +110,7 @@ def test_every_missing_file_is_named_at_once_with_where_it_was_looked_for(daemon
     project(root, mesh=r"scenes\shared\meshes\gone.ply", texture=r"..\textures\gone.png",
             include=r"scenes\parts\gone.xml")
     out = matopt(daemon, root, "scene", "load", "scenes/a/scene.xml")
-    assert out.returncode == 1
+    assert out.returncode == 2  # a local file missing: the user's to fix
     assert out.stderr.count("matopt: error") == 1, out.stderr
     assert "3 files the scene names cannot be found" in out.stderr
     for written, places in [
@@ -162,7 +162,7 @@ def test_the_cli_refuses_a_path_leaving_the_root(daemon, tmp_path):
     project(root, mesh=r"..\..\..\etc\passwd")
     out = matopt(daemon, tmp_path, "scene", "load", str(root / "scenes/a/scene.xml"),
                  "--root", str(root))
-    assert out.returncode == 1
+    assert out.returncode == 2  # refused on the client, before an upload
     assert r"'..\..\..\etc\passwd' (in 'scenes/a/scene.xml') leaves the scene bundle" in (
         out.stderr)
 

@@ -65,6 +65,11 @@ class Unreachable(ClientError):
     """No matoptd answers at the address: distinct from an error the daemon itself returned."""
 
 
+class LocalFileError(ClientError):
+    """A file on this machine is missing, unreadable or not a valid scene: the user's to fix
+    before asking the daemon anything (the CLI exits 2 for it, as for a usage error)."""
+
+
 # ---------------------------------------------------------------------------------------------
 # Connection
 # ---------------------------------------------------------------------------------------------
@@ -176,7 +181,7 @@ def connect(server: str, token: str | None = None, tls_ca: str | None = None, *,
         try:
             root = Path(tls_ca).read_bytes()
         except OSError as exc:
-            raise ClientError(f"cannot read the TLS CA certificate '{tls_ca}': "
+            raise LocalFileError(f"cannot read the TLS CA certificate '{tls_ca}': "
                               f"{exc.strerror or exc}") from None
         creds = grpc.ssl_channel_credentials(root_certificates=root)
         if token:
@@ -304,7 +309,7 @@ def upload_files(client: Client, paths: Sequence[str | os.PathLike],
         try:
             digests.append(sha256_file(p))
         except OSError as exc:
-            raise ClientError(f"cannot read '{p}': {exc.strerror or exc}") from None
+            raise LocalFileError(f"cannot read '{p}': {exc.strerror or exc}") from None
     unique = list(dict.fromkeys(digests))
     if not unique:
         return []
@@ -339,7 +344,7 @@ def bundle_files(main_xml_path: str | os.PathLike, overrides: dict[str, str] | N
     try:
         return scene_files.find_bundle(main_xml_path, overrides, root)
     except (scene_files.SceneFilesError, bundle.BundleError) as exc:
-        raise ClientError(str(exc)) from None
+        raise LocalFileError(str(exc)) from None
 
 
 def upload_bundle(client: Client, main_xml_path: str | os.PathLike,

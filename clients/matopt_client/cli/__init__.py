@@ -1,8 +1,7 @@
 """``matopt``: the command line client of matoptd.
 
 Every failure ends in one line on stderr (``matopt: error: NOT_FOUND: job 'jobs/x' not found``)
-and a non-zero exit status, never a traceback: 1 for errors (from the daemon or local), 2 for
-a wrong command line, 130 for Ctrl-C.
+and a non-zero exit status, never a traceback; the statuses are declared in ``exit_codes``.
 """
 
 from __future__ import annotations
@@ -15,12 +14,10 @@ import sys
 os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 
 import click  # noqa: E402
-import grpc  # noqa: E402
 
 from matopt_client import __version__, workers
-from matopt_api.bundle import BundleError
-from matopt_client.client import ClientError, error_message
 from matopt_api.v1 import matopt_pb2 as pb
+from matopt_client.cli import exit_codes
 from matopt_client.cli.output import emit_json, fields, json_option
 from matopt_client.cli.session import Group, Settings, connected, root_options
 
@@ -57,6 +54,13 @@ class Main(Group):
     the group directly (click's test runner, ``python -m``).
     """
 
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The exit statuses after the commands, where a script's author looks for them."""
+        super().format_epilog(ctx, formatter)
+        with formatter.section("Exit status"):
+            formatter.write_dl([(str(code), text) for code, text in
+                                exit_codes.MEANINGS.items()])
+
     # click answers a closed pipe with exit status 1: it is told of one as something else.
     def make_context(self, *args, **kwargs) -> click.Context:
         try:
@@ -80,19 +84,8 @@ class Main(Group):
             code = _reader_gone()
         except click.UsageError as exc:
             code = _fail(_usage_message(exc), exc.exit_code)
-        except click.ClickException as exc:
-            code = _fail(exc.format_message(), exc.exit_code)
-        except click.Abort:
-            code = _fail("interrupted", 130)
-        except KeyboardInterrupt:
-            code = _fail("interrupted", 130)
-        except grpc.RpcError as exc:
-            code = _fail(error_message(exc), 1)
-        except (ClientError, BundleError) as exc:
-            code = _fail(str(exc), 1)
-        except OSError as exc:
-            where = f"'{exc.filename}': " if exc.filename else ""
-            code = _fail(f"{where}{exc.strerror or exc}", 1)
+        except exit_codes.HANDLED as exc:
+            code = _fail(*exit_codes.failure(exc))
         if standalone_mode:
             sys.exit(code)
         return code
@@ -107,6 +100,9 @@ def cli(ctx: click.Context, server: str, token: str | None, tls_ca: str | None) 
 
     Connection options go before the command (matopt --server H:P job list) or after it.
     SCENE and JOB are full names (scenes/abc, jobs/abc) or bare ids (abc).
+
+    Shell completion of commands, options and your scene and job ids, for bash:
+    eval "$(_MATOPT_COMPLETE=bash_source matopt)" in ~/.bashrc (zsh, fish: docs/cli.md).
     """
     ctx.obj = Settings(server=server, token=token or None, tls_ca=tls_ca or None)
 

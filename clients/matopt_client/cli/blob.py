@@ -6,7 +6,7 @@ from __future__ import annotations
 import click
 
 from matopt_client import client as mc
-from matopt_client.cli.output import emit_json, json_option, note, size, table
+from matopt_client.cli.output import deleted, emit_json, json_option, note, size, table
 from matopt_client.cli.params import BLOB
 from matopt_client.cli.session import Group, connected
 from matopt_api.v1 import matopt_pb2 as pb
@@ -48,7 +48,8 @@ def list_blobs(as_json: bool) -> None:
 @blob.command("rm")
 @click.argument("names", metavar="BLOB...", nargs=-1, type=BLOB)
 @click.option("--unused", is_flag=True, help="every blob of yours that no scene or job uses")
-def remove(names: tuple[str, ...], unused: bool) -> None:
+@json_option
+def remove(names: tuple[str, ...], unused: bool, as_json: bool) -> None:
     """Delete blobs (blobs/<sha256> or the bare digest).
 
     A blob that one of your scenes or jobs uses is refused, naming them: delete those first.
@@ -60,6 +61,10 @@ def remove(names: tuple[str, ...], unused: bool) -> None:
     if unused:
         names += tuple(b.name for b in _listing(client).blobs
                        if not b.used_by and b.name not in names)
-    for name in names:
-        client.blobs.DeleteBlob(pb.DeleteBlobRequest(name=name))
-        note(f"deleted {name}")
+    done: list[str] = []
+    try:
+        for name in names:
+            client.blobs.DeleteBlob(pb.DeleteBlobRequest(name=name))
+            done.append(name)
+    finally:  # those deleted before a refusal are gone: said on stderr, not as JSON
+        deleted(done, as_json and len(done) == len(names))

@@ -15,8 +15,9 @@ from pathlib import Path
 import click
 
 from matopt_client import client as mc
+from matopt_client.client import short_float, short_floats
 from matopt_client import workflow
-from matopt_client.cli.output import note, number, table
+from matopt_client.cli.output import emit_json, json_option, note, number, table
 from matopt_client.cli.progress import JobProgress, outcome
 from matopt_client.cli.session import Settings
 from matopt_client.export import export_job
@@ -68,7 +69,8 @@ def _run(client: mc.Client, name: str) -> pb.Job:
               help="optimization steps")
 @click.option("--spp", default=4, show_default=True, type=int,
               help="samples per pixel of each step")
-def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
+@json_option
+def demo(out_dir: str, resolution: int, iterations: int, spp: int, as_json: bool) -> None:
     """Run the whole loop on the built-in Cornell box.
 
     Renders a reference from the true wall colours, optimizes the walls from grey, exports
@@ -108,6 +110,16 @@ def demo(out_dir: str, resolution: int, iterations: int, spp: int) -> None:
         recovered = {v.key: list(v.value) for v in done.result.parameters}
         initial = {v.key: list(v.value) for v in done.result.initial_parameters}
         errors = {key: _max_error(recovered.get(key, []), truth[key]) for key in KEYS}
+        if as_json:
+            emit_json({
+                "scene": scene.name, "job": job.name, "directory": out_dir,
+                "iteration": done.result.iteration, "loss": short_float(done.result.loss),
+                "maxAbsError": _finite(_max(errors.values())),
+                "parameters": [{"key": key, "initial": short_floats(initial.get(key, START)),
+                                "recovered": short_floats(recovered.get(key, [])),
+                                "true": short_floats(truth[key]),
+                                "maxAbsError": _finite(errors[key])} for key in KEYS]})
+            return
         table(["PARAMETER", "INITIAL", "RECOVERED", "TRUE", "MAX ABS ERROR"],
               [[key, _vector(initial.get(key, START)), _vector(recovered.get(key, [])),
                 _vector(truth[key]), number(errors[key])] for key in KEYS])
@@ -126,6 +138,11 @@ def _max_error(a: list[float], b: list[float]) -> float:
 def _max(values) -> float:
     values = list(values)
     return math.nan if any(math.isnan(v) for v in values) else max(values)
+
+
+def _finite(value: float) -> float | None:
+    """JSON has no NaN: a missing value is null."""
+    return None if math.isnan(value) else short_float(value)
 
 
 def _vector(values) -> str:

@@ -9,9 +9,11 @@ from typing import Sequence
 import click
 
 from matopt_client import client as mc
+from matopt_client.client import short_float
 from matopt_client import workflow
-from matopt_client.cli.output import (best, emit_json, fields, json_option, note, number,
-                                parameter_error, table, timestamp, uploading, warn)
+from matopt_client.cli.output import (best, deleted, emit_json, fields, json_option, note,
+                                      number, parameter_error, table, timestamp, uploading,
+                                      warn)
 from matopt_client.cli.params import (JOB, SCENE, LearningRate, Range, ReferenceImage, SppPhase,
                                       Values)
 from matopt_client.cli.progress import JobProgress, describe, describe_state, follow, outcome
@@ -457,14 +459,15 @@ _control("cancel", "CancelJob", pb.CancelJobRequest, pb.JOB_STATE_CANCELLED,
 
 @job.command()
 @click.argument("name", metavar="JOB", type=JOB)
-def delete(name: str) -> None:
+@json_option
+def delete(name: str, as_json: bool) -> None:
     """Delete a job and its results.
 
     The images and files of its results stay among your blobs: 'matopt blob rm --unused'
     deletes the blobs no scene or job of yours uses any more.
     """
     connected().jobs.DeleteJob(pb.DeleteJobRequest(name=name))
-    note(f"deleted {name}")
+    deleted([name], as_json)
 
 
 @job.command()
@@ -488,20 +491,40 @@ def history(name: str, as_json: bool) -> None:
            for r in response.iterations])
 
 
+def empty_folder(path: Path, force: bool) -> None:
+    """Refuses an --out folder that holds anything (without --force): another job's files
+    there would be replaced, or mixed with this one's, without a word."""
+    if not force and path.is_dir() and any(path.iterdir()):
+        raise click.BadParameter(
+            f"folder '{path}' is not empty: its files would be replaced or mixed with this "
+            "job's; give a new or empty folder, or --force to write into it", param_hint="--out")
+
+
 @job.command("export")
 @click.argument("name", metavar="JOB", type=JOB)
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="directory to write into (created if needed)")
+              help="directory to write into (created if needed; must be empty)")
 @click.option("--which", type=click.Choice(sorted(WHICH), case_sensitive=False), default="best",
               show_default=True, help="the lowest-loss iteration, or the last one")
-def export(name: str, out_dir: str, which: str) -> None:
+@click.option("--force", is_flag=True,
+              help="write into a folder that is not empty: files of the same names are "
+                   "replaced, the others stay")
+@json_option
+def export(name: str, out_dir: str, which: str, force: bool, as_json: bool) -> None:
     """Write a job's results to a directory.
 
     parameters.json (values, initial values, shapes), the initial, optimized and reference
     images of each sensor (PNG and EXR), history.csv, and <key>.npy for large parameters.
-    Prints the files written, one per line.
+    Prints the files written, one per line. A folder that is not empty is refused unless
+    --force is given.
     """
+    empty_folder(Path(out_dir), force)
     done = export_job(connected(), name, Path(out_dir), which.lower())
+    if as_json:
+        emit_json({"job": done.result.job or name, "which": which.lower(),
+                   "iteration": done.result.iteration, "loss": short_float(done.result.loss),
+                   "directory": str(done.directory), "files": [str(p) for p in done.files]})
+        return
     for path in done.files:
         click.echo(str(path))
     note(f"{name}: {which} iteration {done.result.iteration}, "

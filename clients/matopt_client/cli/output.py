@@ -42,6 +42,16 @@ def emit_json(data: Message | dict | list, *, compact: bool = False) -> None:
     click.echo(text)
 
 
+def deleted(names: Sequence[str], as_json: bool) -> None:
+    """What a delete command removed: ``{"deleted": [...]}`` for scripts, a line each on
+    stderr for people (stdout stays empty, as nothing was made)."""
+    if as_json:
+        emit_json({"deleted": list(names)})
+    else:
+        for name in names:
+            note(f"deleted {name}")
+
+
 def note(text: str) -> None:
     """A message for the person at the terminal, not for a script reading stdout."""
     click.echo(text, err=True)

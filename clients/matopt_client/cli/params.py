@@ -29,6 +29,13 @@ class ResourceName(click.ParamType):
             self.fail("must not be empty", param, ctx)
         return resource_name(self.collection, str(value))
 
+    def shell_complete(self, ctx: click.Context, param: click.Parameter,
+                       incomplete: str) -> list:
+        """The caller's names, asked of the daemon (nothing if it does not answer at once)."""
+        from matopt_client.cli import completion  # only when a shell asks
+
+        return completion.names(self.collection, ctx, incomplete)
+
 
 SCENE = ResourceName("scenes")
 JOB = ResourceName("jobs")

@@ -33,10 +33,19 @@ class Interrupted(click.ClickException):
 class JobProgress:
     """Shows a job's progress on stderr while it runs (tqdm draws the bar).
 
-    On a terminal one line rewrites itself (state, bar, iteration/total, loss, best, time),
+    On a terminal one line rewrites itself (state, bar, iteration/total, loss, time, best),
     fitted to the terminal's width. In a log (not a terminal), a line per state change and
     per tenth of the iterations, each a complete line, so CI logs stay short but show
-    movement. The best loss is the daemon's (Job.best_loss), never recomputed here.
+    movement.
+
+    "best" is the daemon's best iteration, shown with its number (``best 0.0111 at 369``),
+    the one ``job status`` and ``job result --which best`` name. It may read higher than the
+    loss beside it, for two reasons the label makes visible rather than hides: the loss is
+    the latest iteration's, while the daemon ranks iterations in batches (its best comes with
+    the job after each batch), so a newer iteration that did better is not ranked yet; and
+    for a windowed loss (dual_buffer, whose single estimates are noisy) the daemon ranks the
+    mean over the iterations ending there, shown as ``best mean``. Recomputing a best here
+    from the losses would name another iteration than the result a user then fetches.
     """
 
     def __init__(self, interactive: bool | None = None) -> None:
@@ -45,7 +54,8 @@ class JobProgress:
         self.total = 0
         self.iteration = 0
         self.loss: float | None = None
-        self.best: float | None = None
+        self.best: tuple[int, float] | None = None  # the daemon's (iteration, loss)
+        self.windowed = False  # the daemon ranks a mean over iterations, not single losses
         self.seconds = 0.0
         self._last_tenth = -1
         self._bar: tqdm | None = None
@@ -59,9 +69,8 @@ class JobProgress:
             self.seconds = job.elapsed_seconds
             if job.iteration:
                 self.loss = job.loss
-            best = workflow.best(job)
-            if best is not None:
-                self.best = best[1]
+            self.best = workflow.best(job) or self.best
+            self.windowed = job.spec.loss == pb.LOSS_DUAL_BUFFER
             if changed and not self.interactive:
                 self._last_tenth = self._tenth()
                 note(self.line())
@@ -85,7 +94,8 @@ class JobProgress:
         extras = [f"loss {number(self.loss)}"] if self.loss is not None else []
         extras.append(f"{self.seconds:.1f} s")
         if self.best is not None:
-            extras.append(f"best {number(self.best)}")
+            label = "best mean" if self.windowed else "best"
+            extras.append(f"{label} {number(self.best[1])} at {self.best[0]}")
         while True:
             meter = dict(n=min(self.iteration, self.total), total=self.total or None,
                          elapsed=self.seconds, prefix=self.state, postfix="  ".join(extras),

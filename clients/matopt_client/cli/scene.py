@@ -8,8 +8,8 @@ import click
 
 from matopt_client import client as mc
 from matopt_client import workflow
-from matopt_client.cli.output import (emit_json, fields, json_option, message_dict, note, number, table,
-                                timestamp, uploading, values, warn)
+from matopt_client.cli.output import (deleted, emit_json, fields, json_option, message_dict,
+                                      note, number, table, timestamp, uploading, values, warn)
 from matopt_client.cli.params import SCENE, Values
 from matopt_client.cli.session import Group, connected
 from matopt_client.export import download_images
@@ -49,6 +49,10 @@ def load(scene_xml: str | None, cornell_box: bool, overrides: tuple[str, ...],
         defaults = workflow.parse_overrides(overrides)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--set") from None
+    if scene_xml:
+        # Every file the scene names, found before connecting (the XMLs are read again for
+        # the upload): a missing one is the user's to fix whether or not a daemon answers.
+        mc.bundle_files(scene_xml, defaults, root)
     created = workflow.create_scene(connected(), scene_xml, defaults, display_name, root,
                                     uploading)
     for warning in created.warnings:
@@ -100,14 +104,15 @@ def show(name: str, as_json: bool) -> None:
 
 @scene.command()
 @click.argument("name", metavar="SCENE", type=SCENE)
-def delete(name: str) -> None:
+@json_option
+def delete(name: str, as_json: bool) -> None:
     """Delete a scene.
 
     Its files stay among your blobs: 'matopt blob rm --unused' deletes the blobs no scene or
     job of yours uses any more.
     """
     connected().scenes.DeleteScene(pb.DeleteSceneRequest(name=name))
-    note(f"deleted {name}")
+    deleted([name], as_json)
 
 
 @scene.command()

@@ -24,6 +24,8 @@ _OPTIONS = {  # name -> (environment variable, help)
                                 "enables TLS"),
 }
 
+CONNECTION_OPTIONS = frozenset(_OPTIONS)  # the parameter names, as every command has them
+
 
 @dataclass
 class Settings:
@@ -54,9 +56,13 @@ def root_options(f: Callable) -> Callable:
     return f
 
 
+_OVERRIDDEN = "matopt.overridden"  # ctx.meta key: the options given after a subcommand
+
+
 def _override(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
     if value is not None:
         setattr(ctx.ensure_object(Settings), param.name, value)
+        ctx.meta.setdefault(_OVERRIDDEN, {})[param.name] = value
 
 
 def _override_options() -> list[click.Option]:
@@ -75,6 +81,17 @@ class Group(click.Group):
         present = {p.name for p in cmd.params}
         cmd.params.extend(o for o in _override_options() if o.name not in present)
         super().add_command(cmd, name)
+
+
+def completion_settings(ctx: click.Context) -> Settings:
+    """The settings while the shell completes a word: the group's callback, which makes
+    them, does not run then, so they come from what was parsed (options, environment)."""
+    given = ctx.find_root().params
+    settings = Settings(server=given.get("server") or DEFAULT_SERVER,
+                        token=given.get("token") or None, tls_ca=given.get("tls_ca") or None)
+    for name, value in ctx.meta.get(_OVERRIDDEN, {}).items():
+        setattr(settings, name, value)
+    return settings
 
 
 def connected() -> Client:
