@@ -8,7 +8,8 @@ tokens file, extra flags) says how its daemon starts, and a case that compares d
 configurations starts those itself, and one with ``NEEDS_DAEMON = False`` (a simulation)
 gets none (``server`` is None). Each case measures its own baseline in the same run,
 alternating with it, and reports ratios. Writes CSVs, PNG plots and summary.md to --out; a
-full run (not --quick, all cases) also copies the summary to docs/benchmarks.md.
+full run (not --quick, all cases) also copies the summary to docs/benchmarks.md, the results
+page, whole; docs/benchmarks-history.md, kept by hand, holds earlier runs and is linked from it.
 
 A case that fails is reported as failed in the summary (with the error); the others still run.
 --quick is a smoke run of reduced cases (a few minutes on 2 CPU cores); the full run takes
@@ -42,6 +43,7 @@ CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_pl
          "ray_cluster",
          "thesis_tables", "real_scenes", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
+HISTORY = DOCS.with_name("benchmarks-history.md")  # by hand: a full run never writes it
 # Cases no longer run, and why: the summary says so, so that a reader of an older report
 # knows where its figures went.
 RETIRED = {
@@ -101,8 +103,9 @@ def _rel(path: Path, settings: Settings) -> str:
 
 
 def summary(results: list[Result], settings: Settings, info, seconds: float,
-            load: tuple[float, float], links: str = "") -> str:
-    """The markdown summary; ``links`` prefixes file links (for a copy elsewhere)."""
+            load: tuple[float, float], links: str = "", history: str = "") -> str:
+    """The markdown summary; ``links`` prefixes file links (for a copy elsewhere), and
+    ``history`` names the page of earlier runs, linked from the copy in docs/."""
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     out = [
         "# matopt benchmarks",
@@ -131,6 +134,8 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "variant, and needs matplotlib (`pip install 'matopt-mitsuba[plot]'`). The cases are the "
         "modules in `bench/`; each module's docstring says exactly what it measures and why.",
         "",
+        *([f"Earlier runs, what changed between them, and the experiments behind the engine's "
+           f"choices: [{history}]({history}).", ""] if history else []),
         "## Targets",
         "",
         "| case | figure | result | met |",
@@ -198,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"bench: wrote {settings.out / 'summary.md'} ({seconds / 60:.1f} min)", file=sys.stderr)
     if not (args.quick or args.only or args.thesis_size) and settings.out == (HERE / "results").resolve():
         links = os.path.relpath(settings.out, DOCS.parent) + "/"
-        DOCS.write_text(summary(results, settings, info, seconds, load, links))
+        DOCS.write_text(summary(results, settings, info, seconds, load, links, HISTORY.name))
         print(f"bench: copied the summary to {DOCS}", file=sys.stderr)
     return 0
 
