@@ -1,6 +1,6 @@
 """The daemon's errors in its own terms: the class says what kind of failure, the message says
 which file, key or value. The API's edge maps each kind to a gRPC status code, in one place
-(``server/status.py``); the store, the scheduling and the workers never see gRPC."""
+(``server/interceptors.py``); the store, the scheduling and the workers never see gRPC."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import platform
 
-from ..workers.devices import core_ranges
+from ..cores import core_ranges
 
 PREFERRED = ("cuda_ad_rgb", "llvm_ad_rgb")
 

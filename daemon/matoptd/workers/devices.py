@@ -190,15 +190,3 @@ def parse_size(text: str) -> int:
     if not m:
         raise ValueError(f"'{text}' is not a size (e.g. 8G, 512M)")
     return int(float(m.group(1)) * 1024 ** " KMGT".index((m.group(2) or " ").upper()))
-
-
-def core_ranges(cores) -> str:
-    """(0, 1, 2, 5) -> '0-2,5'."""
-    parts, start = [], None
-    for i, c in enumerate(cores):
-        if start is None:
-            start = c
-        if i + 1 == len(cores) or cores[i + 1] != c + 1:
-            parts.append(f"{start}-{c}" if c != start else f"{c}")
-            start = None
-    return ",".join(parts)
