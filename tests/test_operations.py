@@ -233,3 +233,15 @@ def test_every_log_line_is_json_and_job_lines_name_job_and_user(operated):
                             for line in admitted)
     ended = [line for line in lines if " SUCCEEDED at iteration " in line["message"]]
     assert ended and ended[0]["user"] == "alice"
+
+
+def test_the_example_config_file_names_every_key_and_parses(tmp_path):
+    example = Path(__file__).resolve().parent.parent / "deploy" / "matoptd.toml.example"
+    lines = [m.group(1) for m in re.finditer(r"^#([a-z][a-z-]* = .*)$", example.read_text(),
+                                            re.M)]
+    assert {line.split(" = ")[0].replace("-", "_") for line in lines} == options.CONFIG_KEYS
+    every = tmp_path / "matoptd.toml"
+    every.write_text("\n".join(lines) + "\n")  # each setting uncommented
+    args = options.parse_args(["--config", str(every)], {})
+    assert (args.workers, args.max_film_memory, args.log_format) == (2, 4 << 30, "json")
+    assert args.tokens == tmp_path / "tokens"
