@@ -20,6 +20,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import options
 
 from conftest import TOKENS, Daemon, Stubs, token_file, wait_iteration, wait_state
+from scenes import cornell_with_truth
 
 CAROL = "carol-token-0123456789ab"
 
@@ -121,13 +122,12 @@ def scrape(d: Daemon) -> dict[str, float]:
 
 
 def small_job(stubs: Stubs, iterations: int) -> pb.Job:
-    scene = stubs.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "32",
-                                                                      "resy": "32"}))
-    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=8)).images[0]
-    return stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, iterations=iterations, spp=4,
-        references=[pb.Reference(blob=ref.exr_blob)],
-        parameters=[pb.ParameterSpec(key="red.reflectance.value")])))
+    """A 32 px Cornell box's red wall, from a reference of the scene itself: fast steps."""
+    scene, _, ref = cornell_with_truth(stubs, 32, 8, ())
+    spec = pb.JobSpec(scene=scene.name, iterations=iterations, spp=4,
+                      references=[pb.Reference(blob=ref.exr_blob)],
+                      parameters=[pb.ParameterSpec(key="red.reflectance.value")])
+    return stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
 
 
 def test_config_file_limits_apply_and_the_command_line_wins(operated):
@@ -245,3 +245,22 @@ def test_the_example_config_file_names_every_key_and_parses(tmp_path):
     args = options.parse_args(["--config", str(every)], {})
     assert (args.workers, args.max_film_memory, args.log_format) == (2, 4 << 30, "json")
     assert args.tokens == tmp_path / "tokens"
+
+
+def test_a_metric_that_fails_is_logged_and_left_out(caplog):
+    from prometheus_client import generate_latest
+    from matoptd.server.metrics import Metrics
+
+    class LostStore:
+        def count_by_phase(self):
+            raise OSError("database is locked")
+
+    metrics = Metrics(LostStore())
+    metrics.stepped("workers/0", 3)
+    text = generate_latest(metrics.registry).decode()  # the scrape still answers
+    assert 'matoptd_worker_iterations_total{worker="workers/0"} 3.0' in text
+    assert "matoptd_jobs{" not in text
+    assert "database is locked" in caplog.text and "_jobs failed" in caplog.text
+    metrics.iterations = None  # a counter gone wrong: the job's step must not notice
+    metrics.stepped("workers/0", 1)
+    assert "Metrics.stepped failed" in caplog.text

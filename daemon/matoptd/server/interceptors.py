@@ -17,10 +17,11 @@ tells the retry policy not to retry.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
 import logging
 import time
-from typing import Any, AsyncIterator, Awaitable, Callable
+from typing import Any, AsyncIterator, Awaitable, Callable, Iterator
 
 import grpc
 from google.protobuf import any_pb2, duration_pb2
@@ -133,33 +134,39 @@ class Latency(grpc.aio.ServerInterceptor):
         handler = await continuation(details)
         if handler is None:
             return handler
-        method, observe = details.method.lstrip("/"), self.observe
+        method = details.method.lstrip("/")
         if handler.response_streaming:
             inner_stream = handler.unary_stream
 
             async def stream(request, context):
-                began, failure = time.perf_counter(), None
-                try:
+                with self._timed(method, context):
                     async for item in inner_stream(request, context):
                         yield item
-                except BaseException as exc:
-                    failure = exc
-                    raise
-                finally:
-                    observe(method, _code(context, failure), time.perf_counter() - began)
             return _wrapped(handler, None, stream)
         inner = handler.unary_unary or handler.stream_unary
 
         async def unary(request, context):
-            began, failure = time.perf_counter(), None
-            try:
+            with self._timed(method, context):
                 return await inner(request, context)
-            except BaseException as exc:
-                failure = exc
-                raise
-            finally:
-                observe(method, _code(context, failure), time.perf_counter() - began)
         return _wrapped(handler, unary, None)
+
+    @contextlib.contextmanager
+    def _timed(self, method: str, context: grpc.aio.ServicerContext) -> Iterator[None]:
+        """Observes the call's time and status when the block ends, however it ends."""
+        began = time.perf_counter()
+        try:
+            yield
+        except BaseException as exc:
+            self._observe(method, context, exc, began)
+            raise
+        self._observe(method, context, None, began)
+
+    def _observe(self, method: str, context: grpc.aio.ServicerContext,
+                 failure: BaseException | None, began: float) -> None:
+        try:
+            self.observe(method, _code(context, failure), time.perf_counter() - began)
+        except Exception:  # noqa: BLE001 - a metric must never cost a call its answer
+            log.exception("metrics: could not time a call of %s", method)
 
 
 def _code(context: grpc.aio.ServicerContext, failure: BaseException | None) -> str:
