@@ -264,3 +264,21 @@ def test_a_metric_that_fails_is_logged_and_left_out(caplog):
     metrics.iterations = None  # a counter gone wrong: the job's step must not notice
     metrics.stepped("workers/0", 1)
     assert "Metrics.stepped failed" in caplog.text
+
+
+def test_a_workers_own_output_becomes_log_records(caplog):
+    from matoptd import logs
+    caplog.set_level("WARNING")
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stderr.write("
+                             "'Traceback (most recent call last):\\n  boom\\n')"],
+                            stderr=subprocess.PIPE)
+    logs.relay(proc.stderr, "matoptd.workers.7")
+    proc.wait()
+    deadline = time.time() + 10
+    while len(caplog.records) < 2 and time.time() < deadline:
+        time.sleep(0.05)
+    assert [(r.name, r.getMessage()) for r in caplog.records] == [
+        ("matoptd.workers.7", "Traceback (most recent call last):"),
+        ("matoptd.workers.7", "  boom")]
+    line = json.loads(logs.JsonFormatter().format(caplog.records[1]))
+    assert line["logger"] == "matoptd.workers.7" and line["level"] == "WARNING"

@@ -13,6 +13,8 @@ import datetime
 import json
 import logging
 import sys
+import threading
+from typing import BinaryIO
 
 TEXT_FORMAT = "%(asctime)s %(name)s %(levelname)s %(message)s"
 FIELDS = ("job", "user")  # what a record may carry besides its message
@@ -37,8 +39,30 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(line, ensure_ascii=False)
 
 
+_json = False
+
+
+def as_json() -> bool:
+    """Whether the log is JSON: then a worker's own output comes through ``relay``."""
+    return _json
+
+
+def relay(stream: BinaryIO, logger: str) -> None:
+    """Logs each line of a worker process's stderr (Dr.Jit's warnings, a traceback) as a
+    WARNING of ``logger``, from a thread of its own, until the process closes it: in a JSON
+    log even what the renderer prints is one object a line."""
+    def run() -> None:
+        log = logging.getLogger(logger)
+        with stream:
+            for line in stream:
+                log.warning("%s", line.decode(errors="replace").rstrip())
+    threading.Thread(target=run, name=f"relay-{logger}", daemon=True).start()
+
+
 def configure(level: str, form: str = "text") -> None:
     """The root logger, to stderr, at ``level`` in ``form`` ("text" or "json")."""
+    global _json
+    _json = form == "json"
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter() if form == "json" else logging.Formatter(TEXT_FORMAT))
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
