@@ -14,8 +14,11 @@ from typing import Any, Iterable
 
 try:
     import tomllib
-except ImportError:  # Python 3.10: the same parser, as a package
-    import tomli as tomllib
+except ImportError:  # Python 3.10: the same parser as a package, if installed
+    try:
+        import tomli as tomllib
+    except ImportError:
+        tomllib = None
 
 
 class ConfigError(ValueError):
@@ -25,6 +28,9 @@ class ConfigError(ValueError):
 def load(path: Path, known: Iterable[str]) -> dict[str, Any]:
     """The file's settings by option name (underscores)."""
     known = frozenset(known)
+    if tomllib is None:
+        raise ConfigError(f"cannot read config file {path}: TOML needs Python 3.11 or newer, "
+                          "or 'pip install tomli'")
     try:
         with open(path, "rb") as f:
             table = tomllib.load(f)
