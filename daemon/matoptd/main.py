@@ -1,20 +1,5 @@
-"""``matoptd``: start the daemon.
-
-    matoptd [--listen HOST:PORT] [--data-dir DIR] [--tokens FILE] [--variant V]
-            [--devices 0,1 | --workers N] [--workers-per-device auto|N] [--ray ADDRESS]
-            [--server-cores N]
-            [--server-nice N] [--worker-memory SIZE]
-            [--watchdog SECONDS] [--quota SIZE] [--tls-cert FILE --tls-key FILE]
-            [--port-file FILE] [--max-samples N] [--max-film-side PX] [--max-film-memory SIZE]
-            [--max-reference-pixels N] [--max-reference-memory SIZE]
-            [--max-jobs-per-user N] [--max-tasks-per-user N]
-
-Each option can also come from the environment (MATOPTD_LISTEN, MATOPTD_DATA_DIR,
-MATOPTD_TOKENS, MATOPTD_VARIANT, MATOPTD_DEVICES, MATOPTD_WORKERS,
-MATOPTD_WORKERS_PER_DEVICE, MATOPTD_RAY,
-MATOPTD_SERVER_CORES, MATOPTD_SERVER_NICE,
-MATOPTD_WORKER_MEMORY, MATOPTD_WATCHDOG, MATOPTD_QUOTA, MATOPTD_TLS_CERT, MATOPTD_TLS_KEY, and
-MATOPTD_MAX_SAMPLES etc. for the limits).
+"""``matoptd``: start the daemon. Its options, their environment variables and its config
+file are ``options.py``'s (``matoptd --help`` lists them).
 
 This process serves the API and never imports Mitsuba or Dr.Jit: it starts one renderer
 worker process per CUDA device that works (or CPU workers), supervises them and restarts them.
@@ -28,9 +13,7 @@ import argparse
 import asyncio
 import ipaddress
 import logging
-import os
 import signal
-import sys
 from pathlib import Path
 
 import grpc
@@ -38,7 +21,8 @@ from grpc_health.v1 import health_pb2
 
 from matopt_api.costs import format_size
 
-from . import __version__
+from . import __version__, logs
+from .options import LIMITS, SERVER_NICE, SERVER_NICE_SHARED, parse_args
 from .scheduling.control import JobControl
 from .scheduling.lanes import Lanes
 from .scheduling.recovery import Recovery
@@ -46,103 +30,13 @@ from .scheduling.scheduler import Scheduler
 from .scheduling.state import State
 from .server import admission, app
 from .server.backend import Backend
-from .server.auth import Authenticator, load_tokens
+from .server.metrics import Metrics
+from .server.auth import Authenticator
 from .store.store import Store
 from .workers import devices, sizing
 from .workers.handle import Handle, Worker
 
 log = logging.getLogger("matoptd")
-
-# Nice levels of the server's threads below the workers', so that rendering goes first: the
-# lowest where CPU workers render on the server's own cores, else SERVER_NICE (server_nice).
-SERVER_NICE, SERVER_NICE_SHARED = 10, 19
-
-# The admission limits (admission.Limits): what one request or one user may ask of the shared
-# workers. Sizes take suffixes (4G, 512M).
-LIMIT_FLAGS = {
-    "max_samples": (int, "samples (film pixels x spp) one render call may take; 2^26 is "
-                    "4096x4096 at 4 spp or 1024x1024 at 64 spp"),
-    "max_film_side": (int, "pixels on a side of any film a request renders"),
-    "max_film_memory": (devices.parse_size, "memory of all films one request renders "
-                        "(16 bytes a pixel)"),
-    "max_reference_pixels": (int, "pixels of one reference image, read from its header"),
-    "max_reference_memory": (devices.parse_size, "memory to decode one reference image"),
-    "max_jobs_per_user": (int, "queued or running jobs of one user"),
-    "max_tasks_per_user": (int, "scene requests (CreateScene, RenderScene, CreateJob) of one "
-                           "user in progress at once"),
-}
-
-
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    env = os.environ.get
-    p = argparse.ArgumentParser(prog="matoptd", description="The matopt material-"
-                                "reconstruction daemon (gRPC API matopt.v1).")
-    p.add_argument("--listen", default=env("MATOPTD_LISTEN", "127.0.0.1:50051"),
-                   help="HOST:PORT to serve on; port 0 picks a free one (default %(default)s)")
-    p.add_argument("--data-dir", type=Path,
-                   default=Path(env("MATOPTD_DATA_DIR",
-                                    Path.home() / ".local" / "share" / "matoptd")),
-                   help="where scenes, jobs, results and blobs live (default %(default)s)")
-    p.add_argument("--tokens", type=Path, default=env("MATOPTD_TOKENS"),
-                   help="file of 'TOKEN USER' lines; without it only a local user, on "
-                        "loopback, is served")
-    p.add_argument("--variant", default=env("MATOPTD_VARIANT"),
-                   help="Mitsuba variant (default: cuda_ad_rgb on each CUDA device that works, "
-                        "else llvm_ad_rgb)")
-    p.add_argument("--devices", default=env("MATOPTD_DEVICES"),
-                   help="CUDA devices to run workers on, e.g. 0,1 (default: every one that "
-                        "works); a device named twice gets two workers")
-    p.add_argument("--workers", type=int, default=env("MATOPTD_WORKERS"),
-                   help="run N CPU workers instead, the cores split between them")
-    p.add_argument("--ray", metavar="ADDRESS", default=env("MATOPTD_RAY"),
-                   help="host the workers as Ray actors on a cluster: 'auto' (the cluster this "
-                        "machine runs in), 'ray://HEAD:10001', 'HOST:PORT', or 'local' for a "
-                        "private Ray instance on this machine; one worker per GPU of the cluster, or "
-                        "with --workers N (or no GPU in the cluster at start) N CPU workers per "
-                        "machine (needs matopt-mitsuba[daemon,ray])")
-    p.add_argument("--workers-per-device", default=env("MATOPTD_WORKERS_PER_DEVICE", "auto"),
-                   metavar="auto|N",
-                   help="worker processes sharing each CUDA device: 'auto' as many as its free "
-                        "memory holds for jobs up to --max-samples (at most 8), or N; on a "
-                        "CPU-only host N workers that each render on all cores ('auto': one, "
-                        "or --workers) (default %(default)s)")
-    p.add_argument("--server-cores", type=int, default=env("MATOPTD_SERVER_CORES"),
-                   help="keep the first N cores this process may use for the server (API, "
-                        "store, scheduler) and give the workers only the others, so that "
-                        "status traffic never competes with rendering (default: all shared)")
-    p.add_argument("--server-nice", type=int, default=env("MATOPTD_SERVER_NICE"),
-                   help="nice levels the server's threads (gRPC, the API's handlers) run "
-                        "below the workers, so that on cores they share rendering goes first; "
-                        f"0 leaves them as started (default: {SERVER_NICE_SHARED} where CPU "
-                        f"workers render on the server's cores, else {SERVER_NICE})")
-    p.add_argument("--worker-memory", default=env("MATOPTD_WORKER_MEMORY"),
-                   help="resident memory a worker may use before it is stopped and its job "
-                        "fails, e.g. 8G (default: 80%% of the machine's memory, shared "
-                        "among the workers)")
-    p.add_argument("--watchdog", type=float, default=float(env("MATOPTD_WATCHDOG", "120")),
-                   help="seconds without an answer after which a worker counts as hung and "
-                        "is restarted; an iteration gets 20x its job's usual time if that is "
-                        "more, a load or first iteration 5x this (default %(default)s)")
-    p.add_argument("--quota", default=env("MATOPTD_QUOTA"), metavar="SIZE",
-                   help="bytes of blobs each user may own (uploads, renders, results), e.g. "
-                        "20G; past it uploads are refused, and new scenes, renders and jobs "
-                        "until the user deletes blobs; results of running jobs are still "
-                        "kept (default: no limit)")
-    for name, (parse, text) in LIMIT_FLAGS.items():
-        default = getattr(admission.Limits, name)
-        size = parse is devices.parse_size
-        p.add_argument(admission.flag(name), type=parse, metavar="SIZE" if size else "N",
-                       default=env(f"MATOPTD_{name.upper()}", default),
-                       help=f"{text} (default {f'{default >> 30}G' if size else f'{default:,}'})")
-    p.add_argument("--slice", type=float, default=None, help=argparse.SUPPRESS)
-    p.add_argument("--tls-cert", type=Path, default=env("MATOPTD_TLS_CERT"))
-    p.add_argument("--tls-key", type=Path, default=env("MATOPTD_TLS_KEY"))
-    p.add_argument("--port-file", type=Path,
-                   help="write the bound port here once serving (useful with port 0)")
-    p.add_argument("--log-level", default=env("MATOPTD_LOG_LEVEL", "info"))
-    p.add_argument("--version", action="version", version=f"matoptd {__version__}")
-    return p.parse_args(argv)
-
 
 def server_nice(asked: int | None, renders_beside: bool) -> int:
     """``--server-nice``, or by default the lowest priority where CPU workers render on the
@@ -170,15 +64,17 @@ async def serve(args: argparse.Namespace) -> None:
     host, _, port = args.listen.rpartition(":")
     if not host or not port.isdigit():
         raise SystemExit(f"matoptd: --listen must be HOST:PORT, got '{args.listen}'")
-    tokens = None
+    auth = Authenticator(None)
     if args.tokens:
         try:
-            tokens = load_tokens(args.tokens)
+            auth = Authenticator.from_file(args.tokens)
         except (OSError, ValueError) as exc:
             raise SystemExit(f"matoptd: cannot use tokens file: {exc}")
     elif not is_loopback(host):
         raise SystemExit(f"matoptd: refusing to listen on {host} without --tokens: anyone "
                          "who can reach it would be the local user")
+    # From here on, while the workers start too: SIGHUP's default would end the daemon.
+    asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, auth.reload)
     if bool(args.tls_cert) != bool(args.tls_key):
         raise SystemExit("matoptd: --tls-cert and --tls-key go together")
 
@@ -192,7 +88,7 @@ async def serve(args: argparse.Namespace) -> None:
             raise SystemExit(f"matoptd: --quota must be at least 1 byte, got '{args.quota}'")
 
     try:
-        limits = admission.Limits(**{name: getattr(args, name) for name in LIMIT_FLAGS})
+        limits = admission.Limits(**{name: getattr(args, name) for name in LIMITS})
     except ValueError as exc:
         raise SystemExit(f"matoptd: {exc}")
     args.data_dir.mkdir(parents=True, exist_ok=True)
@@ -200,12 +96,15 @@ async def serve(args: argparse.Namespace) -> None:
         store = Store(args.data_dir, quota)
     except RuntimeError as exc:  # a data dir made by a newer matoptd
         raise SystemExit(f"matoptd: --data-dir {args.data_dir}: {exc}")
+    metrics = start_metrics(args.metrics_port, store) if args.metrics_port else None
     cluster = None
     if args.ray:
         lanes, cluster = await asyncio.to_thread(start_ray_workers, args, store)
     else:
         lanes = await asyncio.to_thread(start_workers, args, store)
 
+    if metrics is not None:
+        metrics.watch(lanes)
     beside = cluster is None and args.worker_cores is None and any(
         w.placement.cuda is None for w in lanes.state.workers.values())
     nice = server_nice(args.server_nice, beside)
@@ -214,7 +113,8 @@ async def serve(args: argparse.Namespace) -> None:
         log.info("server threads %d nice levels below the workers", nice)
     backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
-    server, health_servicer, names = app.build(backend, Authenticator(tokens))
+    server, health_servicer, names = app.build(backend, auth,
+                                               metrics.rpc if metrics is not None else None)
     if args.tls_cert:
         creds = grpc.ssl_server_credentials([(args.tls_key.read_bytes(),
                                               args.tls_cert.read_bytes())])
@@ -231,7 +131,7 @@ async def serve(args: argparse.Namespace) -> None:
     log.info("matoptd %s serving on %s:%d (%d worker(s), %s, %s)", __version__, host, bound,
              sum(w.state == "idle" for w in lanes.state.workers.values()),
              "TLS" if args.tls_cert else "plaintext",
-             f"{len(set(tokens.values()))} user(s)" if tokens else "local user only")
+             f"{len(auth.users)} user(s)" if args.tokens else "local user only")
     if quota is not None:
         log.info("blob quota: %s per user", format_size(quota))
 
@@ -249,9 +149,26 @@ async def serve(args: argparse.Namespace) -> None:
     await asyncio.gather(server.stop(grace=5), asyncio.to_thread(lanes.stop))
     if cluster is not None:
         cluster.stop()
+    if metrics is not None:
+        metrics.stop()
     store.close()
     log.info("stopped")
 
+
+
+def start_metrics(address: str, store: Store) -> Metrics:
+    """/metrics served before the workers start, so that a port in use ends the daemon at
+    once rather than after a minute of starting workers."""
+    metrics = Metrics(store)
+    try:
+        host, port = metrics.serve(address)
+    except (ValueError, OSError) as exc:
+        raise SystemExit(f"matoptd: --metrics-port {address}: {exc}")
+    log.info("metrics on http://%s:%d/metrics", host if ":" not in host else f"[{host}]", port)
+    if not is_loopback(host):
+        log.warning("metrics on %s: anyone who reaches that port sees user and worker names "
+                    "(no token is asked there)", host)
+    return metrics
 
 
 def lanes_for(args: argparse.Namespace, store: Store, workers: list[Handle]) -> Lanes:
@@ -345,8 +262,7 @@ def _run(args: argparse.Namespace, store: Store, places: list[devices.Placement]
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logs.configure(args.log_level, args.log_format)
     args.worker_cores = None
     if args.server_cores is not None:
         # Before any thread starts: the threads gRPC and the lanes start inherit it.

@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 
 from ..errors import FailedPrecondition
+from ..logs import about
 from ..records import RESUME_PENDING, JobRecord, Phase
 from .recovery import Recovery
 from .state import State
@@ -32,7 +33,7 @@ class JobControl:
         return snapshot
 
     def pause(self, owner: str, name: str) -> JobRecord:
-        log.info("%s: pause requested by %s", name, owner)
+        log.info("%s: pause requested by %s", name, owner, extra=about(name, owner))
         with self.state.lock:
             record = self.state.record(name, owner)
             if record.phase in (Phase.QUEUED, Phase.RUNNING):
@@ -47,7 +48,7 @@ class JobControl:
     def resume(self, owner: str, name: str) -> JobRecord:
         """A paused or interrupted job queues again (from its checkpoint); a pause that was
         not carried out yet is withdrawn."""
-        log.info("%s: resume requested by %s", name, owner)
+        log.info("%s: resume requested by %s", name, owner, extra=about(name, owner))
         with self.state.lock:
             record = self.state.record(name, owner)
             if record.phase is Phase.PAUSING:
@@ -67,7 +68,7 @@ class JobControl:
     def cancel(self, owner: str, name: str) -> JobRecord:
         """A job that never ran ends CANCELLED now; any other stops at its next iteration
         boundary (loaded again if need be) and renders its results first."""
-        log.info("%s: cancel requested by %s", name, owner)
+        log.info("%s: cancel requested by %s", name, owner, extra=about(name, owner))
         with self.state.lock:
             record = self.state.record(name, owner)
             if record.phase.final:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ..errors import DiskFull, Internal, NotFound, Unavailable, UserError
+from ..logs import about
 from ..records import JobRecord, Phase, RESUME_PENDING
 from ..store.outputs import keep_image, keep_result
 from ..workers.client import EngineClient
@@ -119,7 +120,8 @@ class Lane:
         except DiskFull:
             self.recovery.hold(w, action)
         except Exception:  # noqa: BLE001 - a lane must outlive any one job's failure
-            log.exception("%s: %s of %s failed", w.name, action.kind, action.job)
+            log.exception("%s: %s of %s failed", w.name, action.kind, action.job,
+                          extra=about(action.job, action.user))
             self._give_up(action)
         return True
 
@@ -135,7 +137,8 @@ class Lane:
                     record = self.state.record(name)
                     record.checkpoint = record.iteration
             except (UserError, WorkerLost) as exc:
-                log.error("could not checkpoint %s on shutdown: %s", name, exc)
+                log.error("could not checkpoint %s on shutdown: %s", name, exc,
+                          extra=about(name))
         self.worker.stop()
 
     def _timeout(self, action: Action) -> float:
@@ -326,7 +329,7 @@ class Lane:
             self.state.save(record)
             self.state.wake.notify_all()
         log.info("%s %s at iteration %d (%s)", record.name, record.phase.name,
-                 record.iteration, ending.reason)
+                 record.iteration, ending.reason, extra=about(record.name, record.owner))
 
     def _put(self, record: JobRecord) -> Callable[[bytes], str]:
         return lambda data: self.store.blobs.put(data, record.owner)

@@ -44,7 +44,7 @@ import collections
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 from ..records import Ending, JobRecord, Phase
 
@@ -88,6 +88,7 @@ class Job:
     crashes: list[str] = field(default_factory=list)  # how workers were lost under it
     cancel_asked: float | None = None  # when, while its iterations may still keep it waiting
     checkpointed: float = -math.inf    # when its lane last wrote its checkpoint
+    queued: float = 0.0         # when it last became QUEUED (the scheduler's clock)
 
     @property
     def name(self) -> str:
@@ -126,6 +127,16 @@ class Lost:
     others: list[str] = field(default_factory=list)  # loaded there, to reload elsewhere
 
 
+class Observer(Protocol):
+    """Told what the scheduler sees happen, for the daemon's metrics; it must not raise."""
+
+    def started(self, job: Job, waited: float) -> None:
+        """A worker loaded a QUEUED job, which had waited ``waited`` seconds."""
+
+    def stepped(self, worker: str, iterations: int) -> None:
+        """``worker`` ran ``iterations`` of a job."""
+
+
 class Scheduler:
     def __init__(self, clock: Callable[[], float] = time.monotonic,
                  slice_seconds: float = SLICE_SECONDS, step_seconds: float = STEP_SECONDS,
@@ -138,6 +149,7 @@ class Scheduler:
         self.tasks: collections.deque = collections.deque()
         self.held = False  # nothing starts while set (the daemon cannot record results)
         self.usage: dict[str, float] = collections.defaultdict(float)  # per user
+        self.observer: Observer | None = None
         self.typical: dict[str, float] = {}  # seconds an action of each kind takes (EMA)
         self.served: dict[str, float] = collections.defaultdict(lambda: -math.inf)  # last
 
@@ -187,14 +199,14 @@ class Scheduler:
         if job.phase is Phase.PAUSING:
             job.record.phase = Phase.PAUSED
         elif job.phase is Phase.RUNNING and requeue:
-            job.record.phase = Phase.QUEUED
+            job.record.phase, job.queued = Phase.QUEUED, self.clock()
 
     # -- jobs -------------------------------------------------------------------------------
 
     def add_job(self, record: JobRecord, started: bool = False) -> Job:
         """A job that is QUEUED (new, resumed), or PAUSED or INTERRUPTED (to be cancelled)."""
         self._activate(record.owner)
-        job = self.jobs[record.name] = Job(record, started=started)
+        job = self.jobs[record.name] = Job(record, started=started, queued=self.clock())
         return job
 
     def remove(self, name: str) -> None:
@@ -222,7 +234,7 @@ class Scheduler:
             job.record.phase = Phase.RUNNING
         elif job.phase in (Phase.PAUSED, Phase.INTERRUPTED):
             self._activate(job.user)
-            job.record.phase = Phase.QUEUED
+            job.record.phase, job.queued = Phase.QUEUED, self.clock()
 
     def cancel(self, name: str) -> bool:
         """True when the job is CANCELLED now, without a worker: it never ran and is not
@@ -342,6 +354,8 @@ class Scheduler:
         job.used += seconds
         job.last_run = self.served[job.user] = self.clock()
         if action.kind == "step" and iterations:
+            if self.observer is not None:
+                self.observer.stepped(w.name, iterations)
             rate = seconds / iterations
             job.per_iteration = rate if job.per_iteration is None else (
                 EMA * rate + (1 - EMA) * job.per_iteration)
@@ -354,6 +368,8 @@ class Scheduler:
             w.current, w.slice_start = job.name, None
             if job.phase is Phase.QUEUED:
                 job.record.phase = Phase.RUNNING
+                if self.observer is not None:
+                    self.observer.started(job, self.clock() - job.queued)
         elif action.kind in ("evict", "park"):
             self._unload(job, w)
             job.started = True

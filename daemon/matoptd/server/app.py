@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from pathlib import Path
+from typing import Callable
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -22,7 +23,7 @@ from .auth import Authenticator
 from .backend import Backend
 from .blob_service import BlobService
 from .info_service import ServerService
-from .interceptors import Authentication, Errors
+from .interceptors import Authentication, Errors, Latency
 from .job_service import JobService
 from .scene_service import SceneService
 
@@ -60,13 +61,17 @@ def hidden(data_dir: Path) -> dict[str, str]:
                                            Path(data_dir).resolve()}}
 
 
-def build(backend: Backend, auth: Authenticator) -> tuple[grpc.aio.Server,
-                                                          Health, list[str]]:
+def build(backend: Backend, auth: Authenticator,
+          latency: Callable[[str, str, float], None] | None = None
+          ) -> tuple[grpc.aio.Server, Health, list[str]]:
     """The server with every service added; returns it, its health servicer and the names
-    health reports on ("" for the whole server)."""
+    health reports on ("" for the whole server). ``latency``: told each call's method,
+    status code and seconds (``Latency``)."""
     names = [pb.DESCRIPTOR.services_by_name[n].full_name for n in SERVICES]
+    timing = [Latency(latency)] if latency is not None else []
     server = grpc.aio.server(
-        interceptors=[Authentication(auth, names), Errors(names, hidden(backend.store.root))],
+        interceptors=[*timing, Authentication(auth, names),
+                      Errors(names, hidden(backend.store.root))],
         options=[("grpc.max_receive_message_length", MAX_MESSAGE),
                  ("grpc.max_send_message_length", MAX_MESSAGE)])
     rpc.add_BlobServiceServicer_to_server(BlobService(backend), server)

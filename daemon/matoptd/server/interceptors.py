@@ -17,9 +17,11 @@ tells the retry policy not to retry.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
 import logging
-from typing import Any, AsyncIterator, Awaitable, Callable
+import time
+from typing import Any, AsyncIterator, Awaitable, Callable, Iterator
 
 import grpc
 from google.protobuf import any_pb2, duration_pb2
@@ -28,6 +30,7 @@ from google.rpc import error_details_pb2, status_pb2
 
 from ..errors import (Busy, FailedPrecondition, Internal, InvalidArgument, NotFound,
                       ResourceExhausted, Unavailable, UserError)
+from ..logs import about
 from . import fields
 from .auth import Authenticator
 
@@ -118,6 +121,68 @@ async def _refuse_stream(request: Any, context: grpc.aio.ServicerContext
     yield  # an async generator, as a streaming handler is
 
 
+class Latency(grpc.aio.ServerInterceptor):
+    """Times every call (a stream until its last message) and hands the method, the status
+    code and the seconds to ``observe``, which must not raise (``metrics.Metrics.rpc``).
+    First of the interceptors, so that a call refused by the others is timed too."""
+
+    def __init__(self, observe: Callable[[str, str, float], None]) -> None:
+        self.observe = observe
+
+    async def intercept_service(self, continuation: Continuation,
+                                details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler:
+        handler = await continuation(details)
+        if handler is None:
+            return handler
+        method = details.method.lstrip("/")
+        if handler.response_streaming:
+            inner_stream = handler.unary_stream
+
+            async def stream(request, context):
+                with self._timed(method, context):
+                    async for item in inner_stream(request, context):
+                        yield item
+            return _wrapped(handler, None, stream)
+        inner = handler.unary_unary or handler.stream_unary
+
+        async def unary(request, context):
+            with self._timed(method, context):
+                return await inner(request, context)
+        return _wrapped(handler, unary, None)
+
+    @contextlib.contextmanager
+    def _timed(self, method: str, context: grpc.aio.ServicerContext) -> Iterator[None]:
+        """Observes the call's time and status when the block ends, however it ends."""
+        began = time.perf_counter()
+        try:
+            yield
+        except BaseException as exc:
+            self._observe(method, context, exc, began)
+            raise
+        self._observe(method, context, None, began)
+
+    def _observe(self, method: str, context: grpc.aio.ServicerContext,
+                 failure: BaseException | None, began: float) -> None:
+        try:
+            self.observe(method, _code(context, failure), time.perf_counter() - began)
+        except Exception:  # noqa: BLE001 - a metric must never cost a call its answer
+            log.exception("metrics: could not time a call of %s", method)
+
+
+def _code(context: grpc.aio.ServicerContext, failure: BaseException | None) -> str:
+    """The call's status code by name: the one a handler or an interceptor set, else OK, or
+    what gRPC answers for an exception that escaped (CANCELLED, UNKNOWN)."""
+    code = context.code()
+    if code is None:
+        if failure is None:
+            return "OK"
+        gone = isinstance(failure, (asyncio.CancelledError, GeneratorExit))  # caller left
+        return "CANCELLED" if gone else "UNKNOWN"
+    if isinstance(code, grpc.StatusCode):
+        return code.name
+    return next((c.name for c in grpc.StatusCode if c.value[0] == code), str(code))
+
+
 class Errors(grpc.aio.ServerInterceptor):
     """Checks each request's fields (``fields.check``) and answers the daemon's errors with
     their status codes, around every handler of ``services``. ``hidden``: the daemon's own
@@ -177,7 +242,7 @@ async def _guard(context: grpc.aio.ServicerContext, fn: Callable[[], Awaitable[A
     except (grpc.aio.AbortError, asyncio.CancelledError):
         raise
     except Exception as exc:  # noqa: BLE001 - one bad request must not take others down
-        log.exception("internal error")
+        log.exception("internal error", extra=about(user=_caller.get(None)))
         await context.abort(grpc.StatusCode.INTERNAL,
                             hide(f"internal error: {type(exc).__name__}: {exc}", hidden))
 

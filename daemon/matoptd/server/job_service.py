@@ -16,6 +16,7 @@ from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
 from ..errors import FailedPrecondition
+from ..logs import about
 from ..records import ACTIVE, JobRecord, Phase
 from ..store.outputs import results_from_history
 from . import admission, convert, job_spec
@@ -72,7 +73,8 @@ class JobService(rpc.JobServiceServicer):
                                               estimate.samples_per_iteration)
                          for p in settings.parameters if costs.is_large(params[p.key].shape))
         created = self.control.create(job, request.request_id)
-        log.info("%s of %s admitted: %s", job.name, user, estimate.summary)
+        log.info("%s of %s admitted: %s", job.name, user, estimate.summary,
+                 extra=about(job.name, user))
         return convert.job_to_pb(created)
 
     def _admit_another(self, user: str) -> None:

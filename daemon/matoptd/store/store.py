@@ -162,6 +162,11 @@ class Store:
             f"SELECT COUNT(*) FROM jobs WHERE owner=? AND phase IN "
             f"({','.join('?' * len(values))})", (owner, *values))[0][0]
 
+    def count_by_phase(self) -> dict[Phase, int]:
+        """Every user's jobs by phase (a phase without any: 0)."""
+        counts = dict(self.db.query("SELECT phase, COUNT(*) FROM jobs GROUP BY phase"))
+        return {p: counts.get(p.value, 0) for p in Phase}
+
     def delete_job(self, name: str) -> None:
         with self._lock, self.db.transaction() as db:
             for table, col in (("jobs", "name"), ("iterations", "job"), ("results", "job")):

@@ -27,6 +27,7 @@ from typing import Any, Callable, Protocol
 
 from matopt_api.costs import format_size
 
+from .. import logs
 from .devices import Placement, worker_environment
 
 log = logging.getLogger("matoptd.workers")
@@ -128,7 +129,10 @@ class Worker:
             self._stopping = self._stop_cause = ""
             self._proc = subprocess.Popen(command, pass_fds=[theirs.fileno()],
                                           stdin=subprocess.DEVNULL,
+                                          stderr=subprocess.PIPE if logs.as_json() else None,
                                           env=worker_environment(self.data_dir, p))
+            if self._proc.stderr is not None:
+                logs.relay(self._proc.stderr, "matoptd." + self.name.replace("/", "."))
             self._conn = Connection(ours.detach())
         theirs.close()
         began = time.monotonic()

@@ -122,9 +122,10 @@ def main(argv: list[str] | None = None) -> int:
     _die_with_parent(args.parent)
     args.cache = own_directory(args.cache)
     # Ctrl-C in the daemon's terminal reaches the whole process group; the daemon decides
-    # when its workers stop, after it has checkpointed their jobs.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # when its workers stop, after it has checkpointed their jobs. SIGHUP is the daemon's
+    # (it reads its tokens again), also when sent to the group.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     if args.cores:
         os.sched_setaffinity(0, {int(c) for c in args.cores.split(",")})
     conn = Connection(args.fd)
