@@ -14,7 +14,6 @@ import asyncio
 import ipaddress
 import logging
 import signal
-from pathlib import Path
 
 import grpc
 from grpc_health.v1 import health_pb2
