@@ -8,7 +8,6 @@ so an export that left a value out renders the reference instead of the optimize
 
 from __future__ import annotations
 
-import json
 import re
 
 import numpy as np
@@ -125,7 +124,6 @@ def test_the_exported_scene_loads_with_the_values_and_renders_the_optimized_imag
                                 learning_rates=spec.get("learning_rates"))
     out = export(daemon, done.name, tmp_path)
     assert not out.result.unplaced_parameters
-    assert json.loads((out.directory / "parameters.json").read_text())["job"] == done.name
 
     scene, loaded = load_exported_scene(out.directory, out.result.scene_file)
     for key, value in got.items():
@@ -142,7 +140,6 @@ def test_the_exported_scene_loads_with_the_values_and_renders_the_optimized_imag
         noise = difference(ours, again)
         error = difference(ours, optimized)
         away = difference(reference, optimized)
-        print(f"{case} sensor {sensor}: noise {noise:.4f} error {error:.4f} "
-              f"reference {away:.4f}")
+        # as close as two renders of the exported scene, and far from the scene's own values
         assert error < 2 * noise + 0.01, (sensor, error, noise)
         assert error < away / 2, (sensor, error, away)
