@@ -46,6 +46,23 @@ def test_wheel_and_sdist_carry_the_contract(dist):
     assert any(m.endswith("proto/matopt/v1/matopt.proto") for m in members)
 
 
+def test_wheel_and_sdist_carry_the_license(dist):
+    """The BSD licence's text travels with both, as its clause 2 asks of binary forms."""
+    text = (ROOT / "LICENSE").read_bytes()
+    assert b"BSD 3-Clause License" in text and b"the matopt authors" in text
+    wheel = zipfile.ZipFile(next(dist.glob(f"{DISTRIBUTION}-*.whl")))
+    names = wheel.namelist()
+    metadata = wheel.read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
+    assert "License-Expression: BSD-3-Clause" in metadata
+    assert "License-File: LICENSE" in metadata
+    licenses = [n for n in names if n.endswith(".dist-info/licenses/LICENSE")]
+    assert licenses, names
+    assert wheel.read(licenses[0]) == text
+    sdist = tarfile.open(next(dist.glob(f"{DISTRIBUTION}-*.tar.gz")))
+    top = sdist.getnames()[0].split("/")[0]
+    assert sdist.extractfile(f"{top}/LICENSE").read() == text
+
+
 def test_client_wheel_alone_runs_a_job(dist, tmp_path):
     env_dir = tmp_path / "client-venv"
     venv.create(env_dir, with_pip=True)
