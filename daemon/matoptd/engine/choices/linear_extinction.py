@@ -7,7 +7,7 @@ came nearest its truth at iteration 40 (7.7% off), then, with eta released, slid
 valley it shares with eta and the interface's alpha and ended 9.3% off (3 seeds), where the
 plain loop's linear steps ended 5.9% off. Stepped linearly instead, the worst of albedo,
 sigma_t and eta ended at 7.8% and 6.3% against the plain loop's 9.7% and 7.3% in the same run
-(docs/benchmarks.md).
+(docs/benchmarks-history.md).
 
 So a homogeneous medium's scalar sigma_t is stepped as it is, with the step
 
