@@ -7,8 +7,6 @@ choices in force contribute them, each for its own keys (choices/base.py):
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from .choices import Choice, overrides
@@ -19,11 +17,17 @@ from .records import ParamRecord
 class Maps:
     def __init__(self, active: list[Choice]) -> None:
         self.active = active
+        # per (hook, key), looked up at every update; kept here, not in a functools cache,
+        # which would hold every job's choices (and their buffers) for the process's life
+        self._chains: dict[tuple[str, str], tuple[Choice, ...]] = {}
 
-    @functools.cache
     def chain(self, hook: str, key: str) -> tuple[Choice, ...]:
         """The choices in force whose ``hook`` acts on ``key``, in registry order."""
-        return tuple(c for c in self.active if key in c.keys and overrides(c, hook))
+        found = self._chains.get((hook, key))
+        if found is None:
+            found = self._chains[hook, key] = tuple(
+                c for c in self.active if key in c.keys and overrides(c, hook))
+        return found
 
     def encode(self, key: str, value: np.ndarray) -> np.ndarray:
         for c in reversed(self.chain("encode", key)):
