@@ -74,6 +74,7 @@ class Settings:
     iterations: int = 0        # real_scenes: iterations per run (0: by device)
     seeds: int = 0             # real_scenes: seeds (0: 3)
     tables: tuple[str, ...] = ()  # real_scenes: the tables run (empty: all)
+    defaults_only: bool = False  # real_scenes: the plain loop and the defaults, nothing else
 
 
 # ---------------------------------------------------------------------------------------------

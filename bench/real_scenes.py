@@ -36,7 +36,8 @@ max(0.001, r^2), a microfacet alpha as it is). Per seed and as median (min-max).
 
 Sizes: ``--film``/``--iterations`` (default 683x512 and 150 iterations on a CUDA variant,
 128x96 and 100 on the CPU); ``--seeds`` (default 3); ``--tables`` (default both). ``--quick``:
-64x48, 20 iterations, one seed, no on/off runs.
+64x48, 20 iterations, one seed, no on/off runs. ``--defaults-only``: the plain loop and the
+defaults alone, at the full size.
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def plan(settings: Settings, variant: str) -> Plan:
     film = settings.film or ((64, 48) if settings.quick else (683, 512) if gpu else (128, 96))
     iterations = settings.iterations or (20 if settings.quick else 150 if gpu else 100)
     seeds = settings.seeds or (1 if settings.quick else 3)
-    return Plan(film, iterations, seeds, not settings.quick, gpu)
+    return Plan(film, iterations, seeds, not (settings.quick or settings.defaults_only), gpu)
 
 
 # -- errors -----------------------------------------------------------------------------------

@@ -177,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=0, help="real_scenes: seeds (default 3)")
     p.add_argument("--tables", nargs="+", metavar="TABLE", default=(),
                    help="real_scenes: only these of its tables, e.g. table4 (default: all)")
+    p.add_argument("--defaults-only", action="store_true",
+                   help="real_scenes: only the plain loop and the daemon's defaults per seed "
+                   "(no choices turned off, no plain preset, no equal-work pairs)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
@@ -185,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     film = tuple(int(x) for x in args.film.lower().split("x")) if args.film else None
     settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
-                        film, args.iterations, args.seeds, tuple(args.tables))
+                        film, args.iterations, args.seeds, tuple(args.tables),
+                        args.defaults_only)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
