@@ -11,7 +11,11 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
+from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
 from matoptd import settings as api  # noqa: E402
+
+from conftest import wait_state  # noqa: E402
+from scenes import cornell_with_truth  # noqa: E402
 
 RED = "red.reflectance.value"
 GREEN = "green.reflectance.value"
@@ -40,47 +44,39 @@ def _cornell(sensors: int = 1, block: bool = False):
     return mi.load_dict(scene)
 
 
-def _quad():
-    """A textured quad (16x16 float texture) under a white environment."""
-    rng = np.random.default_rng(3)
+def _lit(integrator: str, depth: int, origin: list[float], **shapes) -> mi.Scene:
+    """``shapes`` under a white environment, seen by a 16 px camera from ``origin``."""
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": "prb", "max_depth": 3},
+        "type": "scene", "integrator": {"type": integrator, "max_depth": depth},
         "sensor": {"type": "perspective", "fov": 32, "to_world": mi.ScalarTransform4f().look_at(
-            origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+            origin=origin, target=[0, 0, 0], up=[0, 1, 0]),
             "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
-        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "quad": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {
-            "type": "bitmap", "filter_type": "nearest",
-            "bitmap": mi.Bitmap(rng.uniform(0.2, 0.8, (16, 16, 3)).astype(np.float32))}}}})
+        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}, **shapes})
+
+
+def _quad():
+    """A textured quad (16x16 float texture)."""
+    texels = np.random.default_rng(3).uniform(0.2, 0.8, (16, 16, 3)).astype(np.float32)
+    return _lit("prb", 3, [0, 0, 4], quad={"type": "rectangle", "bsdf": {
+        "type": "diffuse", "reflectance": {"type": "bitmap", "filter_type": "nearest",
+                                           "bitmap": mi.Bitmap(texels)}}})
 
 
 def _medium():
-    """A ball of homogeneous medium (prbvolpath) in front of an area light."""
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "volpath", "max_depth": 6},
-        "sensor": {"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(
-            origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
-        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "ball": {"type": "sphere", "bsdf": {"type": "null"}, "interior": {
-            "type": "homogeneous", "sigma_t": 2.0,
-            "albedo": {"type": "rgb", "value": [0.8, 0.5, 0.3]}}}})
+    """A ball of homogeneous medium (prbvolpath)."""
+    fog = {"type": "homogeneous", "sigma_t": 2.0,
+           "albedo": {"type": "rgb", "value": [0.8, 0.5, 0.3]}}
+    return _lit("volpath", 6, [0, 0, 4],
+                ball={"type": "sphere", "bsdf": {"type": "null"}, "interior": fog})
 
 
 def _grid():
-    """A cube of heterogeneous medium whose albedo is a 8x8x8 RGB grid."""
-    rng = np.random.default_rng(5)
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "volpath", "max_depth": 4},
-        "sensor": {"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(
-            origin=[2, 1.5, 3.5], target=[0, 0, 0], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
-        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
-        "box": {"type": "cube", "to_world": mi.ScalarTransform4f().scale(0.8),
-                "bsdf": {"type": "null"}, "interior": {
-                    "type": "heterogeneous", "sigma_t": 1.5, "albedo": {
-                        "type": "gridvolume", "filter_type": "nearest", "grid": mi.VolumeGrid(
-                            rng.uniform(0.2, 0.8, (8, 8, 8, 3)).astype(np.float32))}}}})
+    """A cube of heterogeneous medium whose albedo is an 8x8x8 RGB grid."""
+    voxels = np.random.default_rng(5).uniform(0.2, 0.8, (8, 8, 8, 3)).astype(np.float32)
+    return _lit("volpath", 4, [2, 1.5, 3.5], box={
+        "type": "cube", "to_world": mi.ScalarTransform4f().scale(0.8), "bsdf": {"type": "null"},
+        "interior": {"type": "heterogeneous", "sigma_t": 1.5, "albedo": {
+            "type": "gridvolume", "filter_type": "nearest", "grid": mi.VolumeGrid(voxels)}}})
 
 
 def _settings(keys, iterations: int = 8, spp_from=None, fit_exposure: bool = False,
@@ -219,3 +215,25 @@ def test_frozen_off_is_the_unfrozen_loop(optimize):
     assert job.loop.group is None
     status = next(c for c in job.loop.status() if c.name == "frozen")
     assert not status.on
+
+
+def test_a_daemon_job_runs_frozen_with_the_history_of_the_unfrozen_one(stubs):
+    scene, _, ref = cornell_with_truth(stubs, 16, 16, [])
+
+    def job(frozen: str) -> tuple[pb.Job, list[float]]:
+        spec = pb.JobSpec(scene=scene.name, iterations=6, spp=4, min_error=0, seed=3,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3)
+                                      for k in (RED, GREEN)])
+        spec.choices["frozen"] = frozen
+        name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+        done = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+        history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
+        return done, [h.loss for h in history]
+
+    (frozen, a), (unfrozen, b) = job("on"), job("off")
+    np.testing.assert_allclose(a, b, rtol=1e-4)
+    on = next(c for c in frozen.choices if c.name == "frozen")
+    assert on.on and "replayed" in on.why
+    assert not next(c for c in unfrozen.choices if c.name == "frozen").on

@@ -270,9 +270,7 @@ class Optimization:
         backward pass begun, where a choice stands in (``group``)."""
         if self.group is not None:
             return self.group(group, divisor)
-        total = sum(self._sensor_loss(i, n, sensor) for n, sensor in group)
-        total /= divisor
-        return total
+        return sum(self._sensor_loss(i, n, sensor) for n, sensor in group) / divisor
 
     def _sensor_loss(self, i: int, n: int, sensor: int):
         images = self.renders.sensor_images(i, n, sensor, 0, self.spp)
@@ -290,10 +288,7 @@ class Optimization:
             return
         self.factor = schedule_factor(self.settings, i)
         self.opt.set_learning_rate({k: self.rate(k) for k in self.records})
-        if self.group is None:
-            dr.backward(total + extra)
-        else:
-            self.group.backward(extra)
+        self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
         ctx.sensors, ctx.held = sensors, set()
         for c in self._hooks["on_gradient"]:
