@@ -19,6 +19,8 @@ the last iteration or L_i < min_error, back-propagates and steps to theta_{i+1}:
 So the best iteration's parameters are exactly the ones that produced its loss, and no step is
 taken whose result would never be rendered. With ``step_per_sensor`` (the thesis tool's way)
 each sensor's gradient is applied as soon as it is known; by default they accumulate.
+With the ``frozen`` choice a sensor group's render, loss and backward pass are one recorded
+function, replayed (engine/frozen.py): the same steps, without tracing them each iteration.
 
 Guards (guards.py): a non-finite gradient component is zeroed before the step (counted in
 ``nonfinite_steps``), a NaN/Inf loss skips the step (``skipped_steps``), and each variable is
