@@ -161,7 +161,7 @@ def test_multires_level_changes_keep_the_recording(optimize):
 
 
 def test_a_spp_schedule_records_again_and_says_so(optimize):
-    settings = dict(keys=[RED, GREEN], spp_from={3: 8, 6: 12})
+    settings = {"keys": [RED, GREEN], "spp_from": {3: 8, 6: 12}}
     frozen = Job(optimize, _cornell, _settings(**settings)).run(8)
     plain = Job(optimize, _cornell, _settings(**settings, frozen="off")).run(8)
     _same(frozen.steps, plain.steps)
@@ -196,7 +196,7 @@ def test_a_choice_that_maps_the_renders_falls_back_and_says_why(optimize):
     assert job.loop.group is None
     assert _why(job.loop) == ("not frozen: exposure_gains map or keep the renders themselves, "
                               "outside what is recorded")
-    assert [c for c in job.loop.choices if c.name == "frozen"][0].notes() == [
+    assert next(c for c in job.loop.choices if c.name == "frozen").notes() == [
         f"frozen: {_why(job.loop)}"]
 
 

@@ -33,7 +33,6 @@ class Frozen(Choice):
             self.reason = (f"{', '.join(hooks)} map or keep the renders themselves, outside "
                            "what is recorded")
             self._say()
-        return None
 
     def _say(self) -> None:
         self.why = (f"not frozen: {self.reason}" if self.reason else
