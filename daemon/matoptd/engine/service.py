@@ -272,7 +272,7 @@ class MitsubaEngine:
             {k: e for k, e in errors.items() if len(e) == len(history)},
             {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
-        return api.Finished(results, notes + shown.notes, _counters(opt))
+        return api.Finished(results, notes + shown.notes + opt.said, _counters(opt))
 
     def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
                  ) -> api.Estimated:
