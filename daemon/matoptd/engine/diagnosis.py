@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,15 @@ class Kept:
     log: bool = False
 
 
+@dataclass
+class Diagnosis:
+    """The notes, and the parameters they say these images do not decide, each with why in a
+    few words (what a result's verdict on it says: engine/verdicts.py)."""
+
+    notes: list[str] = field(default_factory=list)
+    undecided: dict[str, str] = field(default_factory=dict)
+
+
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
             "separates them, or a fixed value for one of them (leave it out of the selection)")
 DECIDER = ("more views (another sensor that sees it), larger images or more samples, or a "
@@ -32,7 +41,7 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
              truth_errors: dict[str, list[float]] | None = None,
              gradients: dict[str, list[np.ndarray]] | None = None,
              traded: set[frozenset[str]] = frozenset(),
-             undetermined: set[str] = frozenset()) -> list[str]:
+             undetermined: set[str] = frozenset()) -> Diagnosis:
     """``trajectories``: per parameter, its value at each iteration (iterations x components),
     for the parameters small enough to be recorded inline, and the mean over components for
     the others (textures, grids). ``truth_errors``: per parameter with a ground truth, its
@@ -40,7 +49,8 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
     each step (the latest last). ``traded`` and ``undetermined``: the pairs and parameters
     the standard errors already name (engine/uncertainty.py), whose notes from the history
     would say less."""
-    notes = undecided(losses, trajectories or {}, truth_errors or {}, traded, undetermined)
+    out = undecided(losses, trajectories or {}, truth_errors or {}, traded, undetermined)
+    notes = out.notes
     for key, s in settings.items():
         v = values.get(key)
         if v is None:
@@ -62,6 +72,7 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                          f"averaged {_short(mean)} (standard error {_short(se)}), no consistent "
                          "sign, so the images did not steer it there; what would decide it: "
                          f"{DECIDER}")
+            out.undecided.setdefault(key, "it drifted on gradients of no consistent sign")
         else:
             notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "
@@ -79,7 +90,7 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                      "zeroed, and those components kept their values")
     if skipped_steps:
         notes.append(f"{skipped_steps} step(s) were skipped: the loss was NaN/Inf")
-    return notes
+    return out
 
 
 def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
@@ -107,17 +118,20 @@ def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
 def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
               truth_errors: dict[str, list[float]],
               traded: set[frozenset[str]] = frozenset(),
-              undetermined: set[str] = frozenset()) -> list[str]:
+              undetermined: set[str] = frozenset()) -> Diagnosis:
     """Where the images do not decide: a parameter that moves away from a given truth while
     the render keeps matching, and pairs of parameters that trade off (unless the standard
     errors' correlations name them: ``traded``), and parameters that never moved (unless
     found not determined)."""
-    notes = []
+    out = Diagnosis()
+    notes, found = out.notes, out.undecided
     for key, first, best, last in drifts_from_truth(losses, truth_errors):
         notes.append(f"{key}: the render matches the references as well as it did, but the "
                      f"error against the given truth grew from {best:.3g} (its lowest) to "
                      f"{last:.3g} (started at {first:.3g}): these images do not decide it; what "
                      f"would: {DECIDER}")
+        found.setdefault(key, "the render kept matching while its error against the given "
+                              "truth grew")
     for a, b, r in trade_offs(losses, trajectories):
         if frozenset((a, b)) in traded:
             continue
@@ -125,14 +139,17 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
                      f"{r:+.2f}) while the loss stays level, so the images do not tell them "
                      f"apart; what would decide them: {DECIDERS}")
+        for one, other in ((a, b), (b, a)):
+            found.setdefault(one, f"it trades off with {other} at a level loss")
     for key in unmoved(trajectories, losses):
         if key in undetermined:
             continue
+        found.setdefault(key, "it never moved: the images carry no gradient for it")
         notes.append(f"{key} hardly moved while the loss fell: the images carry no gradient "
                      "for it (light that would show it may never reach the camera, e.g. "
                      "transmission at a small max_depth); what would decide it: a deeper "
                      f"max_depth, {DECIDER}")
-    return notes
+    return out
 
 
 def _smooth(x: np.ndarray, k: int = 5) -> np.ndarray:
