@@ -23,10 +23,14 @@ class Kept:
 @dataclass
 class Diagnosis:
     """The notes, and the parameters they say these images do not decide, each with why in a
-    few words (what a result's verdict on it says: engine/verdicts.py)."""
+    few words (what a result's verdict on it says: engine/verdicts.py). ``drifts``: for a
+    parameter found undecided only because it drifted on noise, how far it moved (per
+    component, on the value's scale) and the note that says so: a drift within the interval
+    its standard error gives is the scatter that interval allows, not a contradiction."""
 
     notes: list[str] = field(default_factory=list)
     undecided: dict[str, str] = field(default_factory=dict)
+    drifts: dict[str, tuple[np.ndarray, str]] = field(default_factory=dict)
 
 
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
@@ -72,7 +76,9 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                          f"averaged {_short(mean)} (standard error {_short(se)}), no consistent "
                          "sign, so the images did not steer it there; what would decide it: "
                          f"{DECIDER}")
-            out.undecided.setdefault(key, "it drifted on gradients of no consistent sign")
+            if key not in out.undecided:
+                out.undecided[key] = "it drifted on gradients of no consistent sign"
+                out.drifts[key] = (np.abs(np.asarray(b) - np.asarray(a)), notes[-1])
         else:
             notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "

@@ -278,7 +278,7 @@ class MitsubaEngine:
             e = estimates.get(r.which)
             final = verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)) if e else said
             r.standard_errors, r.gain_errors = final.errors, final.gains
-        return api.Finished(results, diagnosed.notes + said.notes, _counters(opt))
+        return api.Finished(results, said.notes, _counters(opt))
 
     def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
                  ) -> api.Estimated:

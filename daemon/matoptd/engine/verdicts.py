@@ -11,17 +11,21 @@ go. Every surface (status, result, export, the clients) shows what this returns.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import engine_api as api
 from .diagnosis import Diagnosis
-from .uncertainty import Estimate
+
+if TYPE_CHECKING:  # uncertainty loads Mitsuba's integrators, which need a variant set
+    from .uncertainty import Estimate
 
 
 @dataclass
 class Verdicts:
-    """A kept iteration's verdicts: per value and per gain, and the notes that go with them."""
+    """A kept iteration's verdicts: per value and per gain, and the notes that go with them
+    (the diagnosis's first)."""
 
     errors: dict[str, api.StandardError]
     gains: dict[int, api.StandardError]
@@ -31,14 +35,28 @@ class Verdicts:
 def reconcile(estimate: Estimate, diagnosed: Diagnosis, sizes: dict[str, int]) -> Verdicts:
     """The estimate's verdicts, with the parameters the diagnosis finds undecided made not
     determined. ``sizes``: the component count of each value a result shows inline, so that
-    an undecided one gets its verdict even where no standard error was estimated."""
+    an undecided one gets its verdict even where no standard error was estimated.
+
+    A drift on noise is the one finding an interval can answer: a value that wandered by no
+    more than two standard errors did what its interval says it may (the note says so
+    instead); one that wandered further is not determined."""
     errors = dict(estimate.errors)
     about = {key: list(notes) for key, notes in estimate.about.items()}
+    replaced: dict[str, str] = {}
     for key, why in diagnosed.undecided.items():
-        if key not in errors and key not in sizes:
+        had = errors.get(key)
+        if key in diagnosed.drifts and had is not None:
+            moved, note = diagnosed.drifts[key]
+            finite = np.isfinite(had.error)
+            if finite.all() and np.all(moved <= 2 * had.error):
+                replaced[note] = (f"{key} drifted by "
+                                  f"{_short(moved)} over its last iterations on gradients of "
+                                  "no consistent sign: within two standard errors, the "
+                                  "scatter its interval allows")
+                continue
+        if had is None and key not in sizes:
             about.pop(key, None)  # a texture or grid: its mean level's note said +- too
             continue
-        had = errors.get(key)
         n = len(had.reading) if had is not None else sizes[key]
         # a component the estimate left undetermined keeps its own reason
         kept = ([r if d == "not_determined" and r else why
@@ -47,5 +65,10 @@ def reconcile(estimate: Estimate, diagnosed: Diagnosis, sizes: dict[str, int]) -
         errors[key] = api.StandardError(np.full(n, np.inf, dtype=np.float32),
                                         ["not_determined"] * n, kept)
         about.pop(key, None)  # an interval or a bound's one-sided interval it no longer has
-    notes = [note for key in about for note in about[key]] + list(estimate.notes)
+    notes = ([replaced.get(n, n) for n in diagnosed.notes]
+             + [note for key in about for note in about[key]] + list(estimate.notes))
     return Verdicts(errors, dict(estimate.gains), notes)
+
+
+def _short(v: np.ndarray) -> str:
+    return ", ".join(f"{x:.3g}" for x in np.ravel(v))
