@@ -83,7 +83,7 @@ def test_two_parameters_drifting_against_each_other_on_a_level_loss_trade_off():
              "obj.roughness": (0.2 + _noise(9, 0.0005))[:, None]}
     found = trade_offs(losses, paths)
     assert len(found) == 1
-    a, b, r = found[0]
+    a, b, r, _ = found[0]
     assert {a, b} == {"obj.eta", "obj.base_color"} and r < -0.8
     note = undecided(losses, paths, {}).notes[0]
     assert "trade off" in note and "obj.eta" in note and "another sensor" in note

@@ -172,27 +172,44 @@ def test_what_the_history_finds_undecided_loses_its_interval(engine):
     assert any("mean level is known" in n for n in out.notes)  # untouched
 
 
-def test_a_drift_on_noise_within_the_interval_is_the_scatter_it_allows(engine):
-    """Drifting on gradients of no consistent sign says the images did not steer a value:
-    by no more than two standard errors, that is what its interval says it may do (the
-    verdict stands, the note says so); by more, it is not determined."""
+def test_a_wander_within_the_interval_is_the_scatter_it_allows(engine):
+    """Drifting on gradients of no consistent sign, or two values wandering in step at a
+    level loss, says the images did not steer them: over no more than their interval's
+    width (four standard errors), that is the scatter their intervals allow (the verdicts
+    stand, the note says so); further, for either of a pair, neither is determined."""
     from matoptd.engine import diagnosis, verdicts
     note = "glass.roughness drifted (0.13 -> 0.14 over its last 20 iterations) on noise"
+    within = "glass.roughness drifted by ...: within its interval's width"
     why = "it drifted on gradients of no consistent sign"
 
     def judged(moved: float) -> verdicts.Verdicts:
         return verdicts.reconcile(_estimate(), diagnosis.Diagnosis(
             [note], {"glass.roughness": why},
-            {"glass.roughness": (np.array([moved]), note)}), {})
+            {"glass.roughness": diagnosis.Wander(np.array([moved]), note, within)}), {})
 
-    within = judged(0.015)  # standard error 0.0092
-    assert within.errors["glass.roughness"].reading == ["two_sided"]
-    assert note not in within.notes
-    assert any(n.startswith("glass.roughness drifted by 0.015") and "scatter its interval "
-               "allows" in n for n in within.notes), within.notes
-    beyond = judged(0.03)
+    covered = judged(0.015)  # standard error 0.0092
+    assert covered.errors["glass.roughness"].reading == ["two_sided"]
+    assert note not in covered.notes and within in covered.notes
+    beyond = judged(0.05)
     assert beyond.errors["glass.roughness"].reading == ["not_determined"]
     assert beyond.errors["glass.roughness"].reason == [why] and note in beyond.notes
+
+    pair = "glass.roughness and glass.eta trade off"
+    both = "glass.roughness and glass.eta wandered in step"
+
+    def paired(eta_moved: float) -> verdicts.Verdicts:
+        return verdicts.reconcile(_estimate(), diagnosis.Diagnosis(
+            [pair], {"glass.roughness": "it trades off with glass.eta at a level loss",
+                     "glass.eta": "it trades off with glass.roughness at a level loss"},
+            {"glass.roughness": diagnosis.Wander(np.array([0.01]), pair, both),
+             "glass.eta": diagnosis.Wander(np.array([eta_moved]), pair, both)}), {})
+
+    assert paired(0.15).errors["glass.eta"].reading == ["two_sided"]  # 4 x 0.039
+    assert paired(0.15).notes[0] == both
+    split = paired(0.2)
+    assert [split.errors[k].reading for k in ("glass.roughness", "glass.eta")] == [
+        ["not_determined"], ["not_determined"]]
+    assert split.notes[0] == pair
 
 
 def test_an_undecided_value_without_a_standard_error_still_gets_its_verdict(engine):

@@ -20,17 +20,27 @@ class Kept:
     log: bool = False
 
 
+@dataclass(frozen=True)
+class Wander:
+    """How far a parameter wandered where the history found it undecided by its wandering
+    (a drift on noise, two parameters moving in step at a level loss), on the value's scale,
+    the note that says so, and what that note becomes where the standard errors cover the
+    wander: then it is the scatter the interval allows, not a contradiction of it."""
+
+    moved: np.ndarray
+    note: str
+    within: str
+
+
 @dataclass
 class Diagnosis:
     """The notes, and the parameters they say these images do not decide, each with why in a
-    few words (what a result's verdict on it says: engine/verdicts.py). ``drifts``: for a
-    parameter found undecided only because it drifted on noise, how far it moved (per
-    component, on the value's scale) and the note that says so: a drift within the interval
-    its standard error gives is the scatter that interval allows, not a contradiction."""
+    few words (what a result's verdict on it says: engine/verdicts.py), and how far those
+    found so by their wandering wandered."""
 
     notes: list[str] = field(default_factory=list)
     undecided: dict[str, str] = field(default_factory=dict)
-    drifts: dict[str, tuple[np.ndarray, str]] = field(default_factory=dict)
+    wander: dict[str, Wander] = field(default_factory=dict)
 
 
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
@@ -77,8 +87,12 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                          "sign, so the images did not steer it there; what would decide it: "
                          f"{DECIDER}")
             if key not in out.undecided:
+                moved = np.abs(np.asarray(b) - np.asarray(a))
                 out.undecided[key] = "it drifted on gradients of no consistent sign"
-                out.drifts[key] = (np.abs(np.asarray(b) - np.asarray(a)), notes[-1])
+                out.wander[key] = Wander(moved, notes[-1], (
+                    f"{key} drifted by {_short(moved)} over its last {n} iterations on "
+                    "gradients of no consistent sign: within its interval's width, the scatter "
+                    "that interval allows"))
         else:
             notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "
@@ -138,15 +152,19 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
                      f"would: {DECIDER}")
         found.setdefault(key, "the render kept matching while its error against the given "
                               "truth grew")
-    for a, b, r in trade_offs(losses, trajectories):
+    for a, b, r, spans in trade_offs(losses, trajectories):
         if frozenset((a, b)) in traded:
             continue
         how = "rises as the other falls" if r < 0 else "moves with the other"
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
                      f"{r:+.2f}) while the loss stays level, so the images do not tell them "
                      f"apart; what would decide them: {DECIDERS}")
-        for one, other in ((a, b), (b, a)):
-            found.setdefault(one, f"it trades off with {other} at a level loss")
+        within = (f"{a} and {b} wandered in step at a level loss (correlation {r:+.2f}), "
+                  "each within its interval's width: the scatter their intervals allow")
+        for one, other, span in ((a, b, spans[0]), (b, a, spans[1])):
+            if one not in found:
+                found[one] = f"it trades off with {other} at a level loss"
+                out.wander[one] = Wander(np.array([span]), notes[-1], within)
     for key in unmoved(trajectories, losses):
         if key in undetermined:
             continue
@@ -207,8 +225,9 @@ def _series(path: np.ndarray) -> np.ndarray:
 
 
 def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
-               min_correlation: float = 0.8) -> list[tuple[str, str, float]]:
-    """(a, b, correlation) for pairs of parameters that both wandered over the second half of
+               min_correlation: float = 0.8
+               ) -> list[tuple[str, str, float, tuple[float, float]]]:
+    """(a, b, correlation, how far each wandered: the span of its smoothed mean) for pairs of parameters that both wandered over the second half of
     the history (by more than 2% of their value, turning back at least once) in step with
     each other while the loss stayed level: a valley the images cannot resolve. A parameter
     still heading one way is converging (or not yet done), not wandering: two of those move
@@ -233,7 +252,7 @@ def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
             n = min(len(moving[a]), len(moving[b]))
             r = float(np.corrcoef(moving[a][-n:], moving[b][-n:])[0, 1])
             if np.isfinite(r) and abs(r) >= min_correlation:
-                out.append((a, b, r))
+                out.append((a, b, r, tuple(float(np.ptp(moving[k])) for k in (a, b))))
     return out
 
 
