@@ -25,7 +25,8 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import choices, diagnosis, images, parameters, scene as scenes, scene_export, uncertainty
+from . import (choices, diagnosis, images, parameters, scene as scenes, scene_export,
+               uncertainty, verdicts)
 from .integrator import medium_notes
 from .optimize import Best, CheckpointError, Optimization, Reference
 
@@ -249,9 +250,7 @@ class MitsubaEngine:
         opt = run.opt
         results = _results(run, _chosen(opt), render)
         opt.flush()
-        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds)
-        for r in results:
-            r.standard_errors, r.gain_errors = estimates[r.which].errors, estimates[r.which].gains
+        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds, run.shapes)
         shown = estimates.get("best") or estimates.get("last") or uncertainty.Estimate({}, {}, [])
         paths: dict[str, list[list[float]]] = {}
         errors: dict[str, list[float]] = {}
@@ -266,13 +265,20 @@ class MitsubaEngine:
         for key, means in ((k, r.means) for k, r in opt.records.items()):
             if key not in trajectories and len(means) >= 20:
                 trajectories[key] = np.array(means)[:, None]
-        notes = diagnosis.diagnose(
+        diagnosed = diagnosis.diagnose(
             opt.kept, opt.progress.last.values, [h.loss for h in history],
             opt.progress.nonfinite_steps, opt.progress.skipped_steps, trajectories,
             {k: e for k, e in errors.items() if len(e) == len(history)},
             {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
-        return api.Finished(results, notes + shown.notes + opt.said, _counters(opt))
+        # One verdict per component, the diagnosis and the standard errors reconciled: what
+        # every surface shows.
+        said = verdicts.reconcile(shown, diagnosed, {})
+        for r in results:
+            e = estimates.get(r.which)
+            final = verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)) if e else said
+            r.standard_errors, r.gain_errors = final.errors, final.gains
+        return api.Finished(results, said.notes + opt.said, _counters(opt))
 
     def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
                  ) -> api.Estimated:
@@ -287,8 +293,10 @@ class MitsubaEngine:
             chosen = [c for c in _chosen(opt) if c[0] == which]
             if not chosen:
                 raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
-            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds)[which]
-            return api.Estimated(e.errors, e.gains, e.notes)
+            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds,
+                                    self.runs[run].shapes)[which]
+            said = verdicts.reconcile(e, diagnosis.Diagnosis(), {})
+            return api.Estimated(said.errors, said.gains, said.notes)
         finally:
             self.release(run)
 
@@ -309,6 +317,13 @@ def _trim_heap() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass  # not glibc: the allocator keeps its own policy
+
+
+def _small(values: dict[str, np.ndarray], kinds: dict[str, str]) -> dict[str, int]:
+    """The component count of each value a result gives a verdict per component: those
+    shown inline, but textures and grids (their mean level is in the notes)."""
+    return {k: int(np.size(v)) for k, v in values.items()
+            if np.size(v) <= api.SMALL and kinds.get(k) not in ("texture", "volume_grid")}
 
 
 def _counters(opt: Optimization) -> api.Counters:
