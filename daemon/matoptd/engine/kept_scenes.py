@@ -22,8 +22,8 @@ import drjit as dr
 import mitsuba as mi
 
 # The most parameter data (textures, grids, meshes) a kept scene may hold: an idle worker
-# should hold little more than it did at its start.
-KEEP_BYTES = 16 << 20
+# should hold little more than it did at its start. A 1k RGB float texture (12 MiB) is over.
+KEEP_BYTES = 8 << 20
 
 
 @dataclass
