@@ -1,0 +1,125 @@
+"""A worker keeps the last released job's scene for the next job on it (engine/kept_scenes.py),
+in-process on MitsubaEngine: the next job compiles nothing and follows the trajectory it
+would follow alone; what a job changed in the scene (its parameters, its film's size) is put
+back; two jobs loaded at once on one scene each have their own; another scene's job drops
+the kept one."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from matoptd import settings as api  # noqa: E402
+
+RED = "red.reflectance.value"
+GREEN = "green.reflectance.value"
+XML = Path(__file__).resolve().parents[1] / "daemon" / "matoptd" / "engine" / "cornell_box.xml"
+
+
+@pytest.fixture(scope="module")
+def service():
+    mi.set_variant("llvm_ad_rgb")
+    from matoptd.engine import service
+    return service
+
+
+@pytest.fixture
+def make(service, tmp_path):
+    """An engine over blobs held here, and a job's settings on the Cornell box at ``res``
+    against a 24 px reference (the film follows it: 24 px high)."""
+    blobs: dict[str, bytes] = {}
+
+    def put(data: bytes) -> str:
+        sha = hashlib.sha256(data).hexdigest()
+        blobs[sha] = data
+        return sha
+
+    image = mi.render(mi.load_file(str(XML), resx=24, resy=24), spp=16, seed=5)
+    mi.Bitmap(image).write(str(tmp_path / "ref.exr"))
+    ref = put((tmp_path / "ref.exr").read_bytes())
+    xml = put(XML.read_bytes())
+    engine = service.MitsubaEngine(blobs.__getitem__, tmp_path / "cache")
+
+    def settings(res: int = 32, initial: bool = True, **kw) -> api.JobSettings:
+        scene = api.SceneInput.of("cornell_box.xml", {"cornell_box.xml": xml},
+                                  {"resx": str(res), "resy": str(res)}, "cornell")
+        start = api.Values([0.5, 0.5, 0.5]) if initial else None
+        return api.JobSettings(
+            scene, [api.ReferenceInput(0, ref, "ref.exr")],
+            [api.ParameterSetting(k, 0.1, 0.0, 1.0, start) for k in (RED, GREEN)],
+            iterations=20, spp=4, schedule="constant", **kw)
+
+    return engine, settings
+
+
+def _run(engine, name: str, settings, n: int = 4, release: bool = True) -> list[float]:
+    engine.start(name, settings, None)
+    losses = [engine.step(name, 1).records[0].loss for _ in range(n)]
+    if release:
+        engine.release(name)
+    return losses
+
+
+def test_a_job_run_again_takes_the_kept_scene_compiles_nothing_and_has_the_same_losses(make):
+    import drjit as dr
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    kept = engine.kept.kept
+    assert kept is not None
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # empties it
+        engine.start("b", settings(), None)
+        assert engine.runs["b"].scene is kept  # the very scene, not a new load
+        again = [engine.step("b", 1).records[0].loss for _ in range(4)]
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and not k["cache_hit"]]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    engine.release("b")
+    assert compiled == []
+    np.testing.assert_allclose(again, first, rtol=1e-6)
+
+
+def test_what_a_job_changed_in_the_scene_is_put_back(make):
+    """A job starting from the scene's own values runs as alone after one that moved them
+    and resized the film."""
+    engine, settings = make
+    scene_values = settings(initial=False, seed=3)
+    alone = _run(engine, "alone", scene_values)
+    _run(engine, "mover", settings())  # starts at grey, moves both walls
+    params = mi.traverse(engine.kept.kept.scene)
+    assert list(params["camera.film.size"]) == [32, 32]  # as loaded, not the reference's 24
+    assert np.allclose(np.array(params[RED]).ravel(), [0.570068, 0.0430135, 0.0443706])
+    np.testing.assert_allclose(_run(engine, "after", scene_values), alone, rtol=1e-6)
+
+
+def test_two_jobs_on_one_scene_at_once_have_their_own_scenes_and_trajectories(make):
+    engine, settings = make
+    a_alone = _run(engine, "a", settings())
+    b_alone = _run(engine, "b", settings(initial=False, seed=7))
+    engine.start("a2", settings(), None)
+    engine.start("b2", settings(initial=False, seed=7), None)
+    assert engine.runs["a2"].scene.scene is not engine.runs["b2"].scene.scene
+    a, b = [], []
+    for _ in range(4):  # in turn, as time slices would
+        a.append(engine.step("a2", 1).records[0].loss)
+        b.append(engine.step("b2", 1).records[0].loss)
+    engine.release("a2")
+    engine.release("b2")
+    np.testing.assert_allclose(a, a_alone, rtol=1e-6)
+    np.testing.assert_allclose(b, b_alone, rtol=1e-6)
+
+
+def test_a_job_on_another_scene_drops_the_kept_one(make):
+    engine, settings = make
+    _run(engine, "a", settings(32))
+    engine.start("other", settings(40), None)
+    assert engine.kept.kept is None  # none idle beside the job's own scene
+    engine.release("other")
+    assert engine.kept.kept.key[0] == settings(40).scene.key
