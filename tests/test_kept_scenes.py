@@ -123,3 +123,39 @@ def test_a_job_on_another_scene_drops_the_kept_one(make):
     assert engine.kept.kept is None  # none idle beside the job's own scene
     engine.release("other")
     assert engine.kept.kept.key[0] == settings(40).scene.key
+
+
+def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tmp_path):
+    """One worker on one thread (its sums in one order), slices of 0.2 s: the same job twice
+    in a row, then it and another job on the same scene taking turns (each evicted and
+    loaded again from its checkpoint), all with the losses of each job alone."""
+    from matopt_api.v1 import matopt_pb2 as pb
+
+    from conftest import Daemon, Stubs, wait_iteration, wait_state
+    from test_faults import cornell_job
+
+    daemon = Daemon(tmp_path / "data", None, "--workers", "1", "--server-cores", "1",
+                    "--slice", "0.2").start()
+    stubs = Stubs(daemon.address)
+    try:
+        def losses(job: pb.Job) -> list[float]:
+            wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+            return [r.loss for r in stubs.jobs.GetJobHistory(
+                pb.GetJobHistoryRequest(name=job.name)).iterations]
+
+        first = cornell_job(stubs, 60, seed=7)
+        alone = losses(first)
+        other = cornell_job(stubs, 60, seed=9)  # the same scene's content, another seed
+        other_alone = losses(other)
+        again = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=first.spec))
+        np.testing.assert_allclose(losses(again), alone, rtol=1e-6)
+        a = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=first.spec))
+        b = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=other.spec))
+        wait_iteration(stubs, b.name, 1)
+        assert stubs.jobs.GetJob(pb.GetJobRequest(name=a.name)).iteration < 60  # in turn
+        np.testing.assert_allclose(losses(a), alone, rtol=1e-6)
+        np.testing.assert_allclose(losses(b), other_alone, rtol=1e-6)
+        assert len(alone) == len(other_alone) == 60
+    finally:
+        stubs.close()
+        daemon.stop()
