@@ -31,7 +31,7 @@ def service():
 @pytest.fixture
 def make(service, tmp_path):
     """An engine over blobs held here, and a job's settings on the Cornell box at ``res``
-    against a 24 px reference (the film follows it: 24 px high)."""
+    against a 48x24 reference (the film follows its aspect ratio: 2 res x res)."""
     blobs: dict[str, bytes] = {}
 
     def put(data: bytes) -> str:
@@ -39,7 +39,7 @@ def make(service, tmp_path):
         blobs[sha] = data
         return sha
 
-    image = mi.render(mi.load_file(str(XML), resx=24, resy=24), spp=16, seed=5)
+    image = mi.render(mi.load_file(str(XML), resx=48, resy=24), spp=16, seed=5)
     mi.Bitmap(image).write(str(tmp_path / "ref.exr"))
     ref = put((tmp_path / "ref.exr").read_bytes())
     xml = put(XML.read_bytes())
@@ -94,7 +94,7 @@ def test_what_a_job_changed_in_the_scene_is_put_back(make):
     alone = _run(engine, "alone", scene_values)
     _run(engine, "mover", settings())  # starts at grey, moves both walls
     params = mi.traverse(engine.kept.kept.scene)
-    assert list(params["camera.film.size"]) == [32, 32]  # as loaded, not the reference's 24
+    assert list(params["camera.film.size"]) == [32, 32]  # as loaded; the job's was 64x32
     assert np.allclose(np.array(params[RED]).ravel(), [0.570068, 0.0430135, 0.0443706])
     np.testing.assert_allclose(_run(engine, "after", scene_values), alone, rtol=1e-6)
 
@@ -123,6 +123,36 @@ def test_a_job_on_another_scene_drops_the_kept_one(make):
     assert engine.kept.kept is None  # none idle beside the job's own scene
     engine.release("other")
     assert engine.kept.kept.key[0] == settings(40).scene.key
+
+
+def test_a_texture_job_again_finds_the_texture_as_loaded(service, tmp_path):
+    """The next job on a scene whose texture a job optimized (through coarse-to-fine levels)
+    starts from the texture as loaded, and runs as the first did."""
+    from scenes import exr, textured_quad
+    texture = "quad.bsdf.reflectance.data"
+    y, x = np.mgrid[0:64, 0:64] / 63.0
+    pixels = np.stack([0.2 + 0.6 * x, 0.2 + 0.6 * y, np.full_like(x, 0.4)], -1)
+    files = {"scene.xml": textured_quad(24, filename="textures/albedo.exr").encode(),
+             "textures/albedo.exr": exr(pixels)}
+    for path, data in files.items():
+        (tmp_path / "bundle" / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "bundle" / path).write_bytes(data)
+    image = mi.render(mi.load_file(str(tmp_path / "bundle" / "scene.xml")), spp=16, seed=5)
+    mi.Bitmap(image).write(str(tmp_path / "ref.exr"))
+    files["ref.exr"] = (tmp_path / "ref.exr").read_bytes()
+    blobs = {hashlib.sha256(d).hexdigest(): d for d in files.values()}
+    sha = {p: hashlib.sha256(d).hexdigest() for p, d in files.items()}
+    scene = api.SceneInput.of("scene.xml", {p: sha[p] for p in ("scene.xml",
+                              "textures/albedo.exr")}, {}, "quad")
+    settings = api.JobSettings(
+        scene, [api.ReferenceInput(0, sha["ref.exr"], "ref.exr")],
+        [api.ParameterSetting(texture, 0.05, 0.0, 1.0, api.Values([0.5] * 64 * 64 * 3))],
+        iterations=8, spp=4, schedule="constant")
+    engine = service.MitsubaEngine(blobs.__getitem__, tmp_path / "cache")
+    first = _run(engine, "a", settings, n=6)  # through the coarse levels to the full one
+    params = mi.traverse(engine.kept.kept.scene)
+    np.testing.assert_allclose(np.array(params[texture]), pixels, atol=1e-6)
+    np.testing.assert_allclose(_run(engine, "b", settings, n=6), first, rtol=1e-6)
 
 
 def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tmp_path):
