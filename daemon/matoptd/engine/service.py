@@ -28,6 +28,7 @@ from ..settings import Values, read_values
 from . import (choices, diagnosis, images, parameters, scene as scenes, scene_export,
                uncertainty, verdicts)
 from .integrator import medium_notes
+from .kept_scenes import KeptScenes, Loaded
 from .optimize import Best, CheckpointError, Optimization, Reference
 
 
@@ -41,6 +42,7 @@ class Run:
     shapes: dict[str, list[int]]
     kinds: dict[str, str]
     max_samples: int = 0  # of one render call (settings.max_samples)
+    scene: Loaded | None = None  # the scene as loaded, kept again at release (unless replaced)
 
 
 class MitsubaEngine:
@@ -53,6 +55,7 @@ class MitsubaEngine:
         (self.cache / "scenes").mkdir(parents=True, exist_ok=True)
         self.runs: dict[str, Run] = {}
         self._preview: tuple[str, mi.Scene] | None = None  # the last scene rendered
+        self.kept = KeptScenes()  # the last released job's scene, for the next job on it
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -166,13 +169,20 @@ class MitsubaEngine:
 
     def start(self, job: str, settings: api.JobSettings, checkpoint: bytes | None
               ) -> api.Started:
-        """Builds the job's optimization. A scene kept for previews goes first: Mitsuba
-        dispatches a BSDF's or an emitter's virtual call over every live instance in the
-        process, so each scene held makes every job's kernels bigger."""
+        """Builds the job's optimization, on the scene a released job left when it is the
+        same one (loaded for the same keys), else on a new load. A scene kept for previews or
+        for another scene's jobs goes first: Mitsuba dispatches a BSDF's or an emitter's
+        virtual call over every live instance in the process, so each scene held makes every
+        job's kernels bigger, and a scene loaded beside it gets other instance ids, which
+        the kernel cache sees as other kernels."""
         self._preview = None
         began = time.perf_counter()
         keys = [p.key for p in settings.parameters]
-        loaded = self.load(settings.scene, keys)
+        key = (settings.scene.key, tuple(keys))
+        held = self.kept.take(key)
+        if held is None:
+            held = Loaded.of(self.load(settings.scene, keys), key)
+        loaded = held.scene
         chosen = choices.build(settings)
         loading = choices.Loading(self.layout(settings.scene), lambda path: scenes.load(
             path, settings.scene.overrides, settings.scene.display, keys,
@@ -200,8 +210,10 @@ class MitsubaEngine:
             opt.progress.elapsed += time.perf_counter() - began
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in keys}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in keys}
+        # A choice that loaded the scene anew (filter scaling) leaves nothing to keep.
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
-                             shapes, kinds, settings.max_samples)
+                             shapes, kinds, settings.max_samples,
+                             held if loaded is held.scene else None)
         return api.Started(opt.progress.iteration, opt.integrator_name, opt.integrator_reason,
                            list(opt.renders.references), opt.notes, shapes, kinds, opt.status())
 
@@ -302,9 +314,15 @@ class MitsubaEngine:
 
     def release(self, job: str) -> None:
         """Drops the job's run and returns the memory it held: Dr.Jit keeps freed buffers in
-        a cache of its own, which goes back only when asked."""
-        self.runs.pop(job, None)
+        a cache of its own, which goes back only when asked. Its scene is kept, as loaded,
+        for the next job on it: the run goes first, so that none of its buffers stay."""
+        run = self.runs.pop(job, None)
+        held = run.scene if run is not None else None
+        del run
         gc.collect()
+        if held is not None:
+            self.kept.give_back(held)
+            del held
         if not self.runs:
             dr.flush_malloc_cache()
             _trim_heap()
