@@ -38,8 +38,8 @@ os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import common  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
-CASES = ["overhead", "warm_start", "quality", "stability", "memory", "control_plane", "grids",
-         "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
+CASES = ["overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
+         "grids", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
          "thesis_tables", "real_scenes", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"

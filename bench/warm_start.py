@@ -4,10 +4,11 @@ iteration: render, loss, backward, Adam step).
 
 This is what a long-running daemon is for: its renderer worker process has imported Mitsuba,
 initialised the variant and compiled the kernels (at its start, and by the job that ran the
-scene before), and keeps them between jobs. What it does per job is what the fresh process
-does after its imports: load the scene (a worker keeps no job's scene once the job ends) and
-run the iteration, plus the way there: CreateJob, the scheduler's pick and the engine call
-in the worker. Both sides pay the iteration itself, so the ratio is bounded by (setup +
+scene before), and keeps them between jobs, with the last job's scene (engine/kept_scenes.py):
+the next job on it is not loaded again, and its kernels keep their instance ids. What it does
+per job is less than what the fresh process does after its imports (load the scene, run the
+iteration): the iteration, plus the way there: CreateJob, the scheduler's pick and the engine
+call in the worker. Both sides pay the iteration itself, so the ratio is bounded by (setup +
 iteration) / iteration. Both sides count the first iteration as finished once its loss is
 known and its gradient step is on its way: as in a plain loop, the worker leaves the step
 pending and the next iteration evaluates it, and the fresh process launches its step without

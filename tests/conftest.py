@@ -174,6 +174,14 @@ def wait_state(stubs: Stubs, name: str, states, timeout: float = 300) -> pb.Job:
     raise AssertionError(f"{name} did not reach {states}: {job}")
 
 
+def finished(stubs: Stubs, spec: pb.JobSpec) -> tuple[pb.Job, pb.JobResult]:
+    """A job run to its end (it must succeed), and its best result."""
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=600)
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+    return done, stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
+
+
 def wait_iteration(stubs: Stubs, name: str, at_least: int, timeout: float = 180) -> pb.Job:
     """Until the job has done ``at_least`` iterations."""
     deadline = time.time() + timeout

@@ -183,13 +183,14 @@ def camera(res: int, origin: str = "0, 0, 4", fov: float = 30, height: int = 0) 
 
 
 def textured_quad(res: int = 32, bsdf: str = "diffuse", colour: str = "reflectance",
-                  filename: str = "textures/albedo.png") -> str:
+                  filename: str = "textures/albedo.png", lights: str = "") -> str:
     """A quad filling the view with a colour texture (an 8-bit PNG unless ``filename`` names
-    another file), lit by a white environment."""
+    another file), lit by a white environment (and ``lights``, emitters' XML)."""
     return f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="3"/></integrator>
     {camera(res, fov=32)}
     <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+    {lights}
     <shape type="rectangle" id="quad">
         <bsdf type="{bsdf}">
             <texture type="bitmap" name="{colour}">

@@ -34,7 +34,7 @@ def test_texture_absorbing_spec_trans_is_reported_against_the_truth():
     assert [f[0] for f in found] == ["obj.spec_trans"]
     key, first, lowest, last = found[0]
     assert first == 0.9 and lowest == 0.9 and last == 1.0
-    note = undecided(losses, {}, errors)[0]
+    note = undecided(losses, {}, errors).notes[0]
     assert "obj.spec_trans" in note and "do not decide" in note and "more views" in note
 
 
@@ -83,9 +83,9 @@ def test_two_parameters_drifting_against_each_other_on_a_level_loss_trade_off():
              "obj.roughness": (0.2 + _noise(9, 0.0005))[:, None]}
     found = trade_offs(losses, paths)
     assert len(found) == 1
-    a, b, r = found[0]
+    a, b, r, _ = found[0]
     assert {a, b} == {"obj.eta", "obj.base_color"} and r < -0.8
-    note = undecided(losses, paths, {})[0]
+    note = undecided(losses, paths, {}).notes[0]
     assert "trade off" in note and "obj.eta" in note and "another sensor" in note
 
 
@@ -111,7 +111,7 @@ def test_a_parameter_without_gradient_is_reported_as_unmoved():
     paths = {"obj.eta": np.full((N, 1), 1.54),
              "obj.base_color": (0.41 - 0.3 * np.exp(-np.arange(N) / 10))[:, None]}
     assert unmoved(paths, losses) == ["obj.eta"]
-    note = undecided(losses, paths, {})[0]
+    note = undecided(losses, paths, {}).notes[0]
     assert "obj.eta hardly moved" in note and "max_depth" in note
 
 
@@ -120,7 +120,7 @@ def test_diagnose_passes_the_truth_errors_through():
     spec = np.maximum(0.1 - 0.02 * np.arange(N), 0.0)
     notes = diagnose({"obj.spec_trans": Kept(0.0, 1.0)}, {"obj.spec_trans": np.array([0.0])}, losses, 0, 0,
                      {"obj.spec_trans": spec[:, None]},
-                     {"obj.spec_trans": list(np.abs(spec - 1.0))})
+                     {"obj.spec_trans": list(np.abs(spec - 1.0))}).notes
     assert any("do not decide" in n for n in notes)
     assert any("ended on its lower bound 0" in n for n in notes)
 
@@ -140,7 +140,7 @@ def _notes(gradients: list[np.ndarray] | None) -> list[str]:
     losses, paths = _drifting_roughness()
     return diagnose({"blob.roughness": _ROUGHNESS}, {"blob.roughness": np.array([0.066])},
                     losses, 0, 0, paths,
-                    gradients=None if gradients is None else {"blob.roughness": gradients})
+                    gradients=None if gradients is None else {"blob.roughness": gradients}).notes
 
 
 def test_a_drift_on_gradients_without_a_consistent_sign_is_noise_not_convergence():
@@ -181,7 +181,7 @@ def _at_floor(gradients: list[np.ndarray] | None) -> list[str]:
     notes = diagnose({"blob.roughness": _ROUGHNESS},
                      {"blob.roughness": np.array([ROUGHNESS_FLOOR], np.float32)},
                      list(0.001 + _noise(4, 1e-4)), 0, 0, {"blob.roughness": path[:, None]},
-                     gradients=None if gradients is None else {"blob.roughness": gradients})
+                     gradients=None if gradients is None else {"blob.roughness": gradients}).notes
     return [n for n in notes if n.startswith("blob.roughness")]
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
 
-from conftest import wait_iteration, wait_state
+from conftest import finished as run, wait_iteration, wait_state
 from scenes import camera, create_scene, upload, vol
 
 RES = 24
@@ -30,13 +30,6 @@ def cornell(stubs):
         overrides={"resx": str(RES), "resy": str(RES)}))
     image = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=256)).images[0]
     return scene, image.exr_blob
-
-
-def run(stubs, job_spec: pb.JobSpec) -> tuple[pb.Job, pb.JobResult]:
-    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=job_spec))
-    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED), timeout=600)
-    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
-    return done, stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
 
 
 @pytest.fixture(scope="module")

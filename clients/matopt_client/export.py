@@ -88,16 +88,18 @@ def _values(client: Client, values, directory: Path, suffix: str,
     return out, shapes
 
 
-def _estimated(result: pb.JobResult) -> dict[str, tuple[list, list, list[str]]]:
-    """(values, standard errors, intervals as "two_sided", "at_lower_bound", ...) of each
-    value and gain ("gain of <reference>") that has standard errors."""
+def _estimated(result: pb.JobResult) -> dict[str, tuple[list, list, list[str], list[str]]]:
+    """(values, standard errors, intervals as "two_sided", "at_lower_bound", ..., and why
+    each one "not_determined" is: "" for the others) of each value and gain ("gain of
+    <reference>") that has a verdict."""
     out = {}
     named = [(v.key, v.value, v) for v in result.parameters] + \
         [(f"gain of {g.reference or f'sensor {g.sensor}'}", g.rgb, g) for g in result.gains]
     for key, values, v in named:
         if len(v.standard_error):
             out[key] = (list(values), list(v.standard_error),
-                        [enums.short_name(pb.Interval, i).lower() for i in v.interval])
+                        [enums.short_name(pb.Interval, i).lower() for i in v.interval],
+                        list(v.interval_reason) or [""] * len(v.standard_error))
     return out
 
 
@@ -109,8 +111,9 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     fit_exposure the RGB gain of each reference (under "gains"); a parameter
     too large to travel inline is written as ``<key>.npy`` (``<key>_initial.npy`` for its
     initial value) and named in the JSON instead of its values. Standard errors, per
-    component, are under "standard_errors" (null: not determined) with their "intervals",
-    and in ``parameters.csv`` (parameter, component, value, standard_error, interval).
+    component, are under "standard_errors" (null: not determined) with their "intervals"
+    and, for those not determined, why ("reasons"), and in ``parameters.csv`` (parameter,
+    component, value, standard_error, interval, reason).
     """
     name = resource_name("jobs", job_name)
     out = Path(directory)
@@ -136,9 +139,12 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
     estimated = _estimated(result)
     if estimated:  # one standard error per component (null: not determined) and its reading
         document["standard_errors"] = {k: [None if math.isinf(e) else short_float(e)
-                                           for e in errors] for k, (_, errors, _) in
+                                           for e in errors] for k, (_, errors, _, _) in
                                        estimated.items()}
-        document["intervals"] = {k: readings for k, (_, _, readings) in estimated.items()}
+        document["intervals"] = {k: readings for k, (_, _, readings, _) in estimated.items()}
+        reasons = {k: why for k, (_, _, _, why) in estimated.items() if any(why)}
+        if reasons:
+            document["reasons"] = reasons
     path = out / "parameters.json"
     path.write_text(json.dumps(document, indent=2) + "\n")
     export.files.append(path)
@@ -146,11 +152,12 @@ def export_job(client: Client, job_name: str, directory: str | Path, which: str 
         path = out / "parameters.csv"
         with open(path, "w", newline="") as f:
             writer = csv.writer(f)
-            writer.writerow(["parameter", "component", "value", "standard_error", "interval"])
-            for key, (values, errors, readings) in estimated.items():
-                for i, row in enumerate(zip(values, errors, readings)):
+            writer.writerow(["parameter", "component", "value", "standard_error", "interval",
+                             "reason"])
+            for key, (values, errors, readings, why) in estimated.items():
+                for i, row in enumerate(zip(values, errors, readings, why)):
                     writer.writerow([key, i, repr(short_float(row[0])),
-                                     repr(short_float(row[1])), row[2]])
+                                     repr(short_float(row[1])), row[2], row[3]])
         export.files.append(path)
 
     export.files += download_images(client, result.images, out)

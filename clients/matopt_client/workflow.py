@@ -381,15 +381,18 @@ def floats(values: Iterable[float]) -> str:
 
 
 def estimated(values: Sequence[float], errors: Sequence[float] = (),
-              intervals: Sequence[int] = ()) -> str:
-    """``0.412 +- 0.003, 0 (at its bound, +0.02)``: values with their standard errors as the
-    result reads them (ParameterValue.interval); the values alone when there are none."""
+              intervals: Sequence[int] = (), reasons: Sequence[str] = ()) -> str:
+    """``0.412 +- 0.003, 0 (at its bound, +0.02), 0.13 (not determined by these images: why)``:
+    values with their verdicts as the result reads them (ParameterValue.interval and
+    interval_reason); the values alone when there are none."""
     if not len(errors):
         return floats(values)
     out = []
-    for v, e, interval in zip(values, errors, list(intervals) or [0] * len(values)):
+    for v, e, interval, why in zip(values, errors, list(intervals) or [0] * len(values),
+                                   list(reasons) or [""] * len(values)):
         if interval == pb.INTERVAL_NOT_DETERMINED or math.isinf(e):
-            out.append(f"{v:.4g} (not determined)")
+            out.append(f"{v:.4g} (not determined by these images" + (f": {why})" if why
+                                                                     else ")"))
         elif interval == pb.INTERVAL_AT_LOWER_BOUND:
             out.append(f"{v:.4g} (at its bound, +{e:.2g})")
         elif interval == pb.INTERVAL_AT_UPPER_BOUND:
@@ -417,5 +420,9 @@ def gain_reference(gain: pb.ReferenceGain) -> str:
 def gain_fields(gains: Iterable[pb.ReferenceGain]) -> dict[str, str]:
     """``{"gain of dim.exr": "0.6, 0.5, 0.4"}``: the RGB gain of each reference
     (JobSpec.fit_exposure), render x gain ~ reference."""
-    return {f"gain of {gain_reference(g)}": estimated(g.rgb, g.standard_error, g.interval)
-            for g in gains}
+    return {f"gain of {gain_reference(g)}": verdict(g.rgb, g) for g in gains}
+
+
+def verdict(values: Sequence[float], v: pb.ParameterValue | pb.ReferenceGain) -> str:
+    """A value's (or gain's) components with their verdicts (``estimated``)."""
+    return estimated(values, v.standard_error, v.interval, v.interval_reason)

@@ -201,19 +201,21 @@ class Progress:
     choices: list[ChoiceStatus] = field(default_factory=list)
 
 
-# How a component's standard error reads (engine/uncertainty.py): value +- error; at a bound
-# (or the floor a value is shown at) the interval is one-sided, away from it; not determined:
-# the images do not decide it (the error is +inf).
+# How a component's verdict reads (engine/verdicts.py): value +- error; at a bound (or the
+# floor a value is shown at) the interval is one-sided, away from it; not determined: the
+# images do not decide it (the error is +inf, and a reason says why).
 READINGS = ("two_sided", "at_lower_bound", "at_upper_bound", "not_determined")
 
 
 @dataclass
 class StandardError:
-    """One standard error per component of a value (same order), and how to read each (one
-    of READINGS)."""
+    """A value's verdict: one standard error per component (same order), how to read each
+    (one of READINGS) and, for a component not determined, why in a few words ("" for the
+    others; an empty list when none has a reason)."""
 
     error: np.ndarray
     reading: list[str]
+    reason: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -54,6 +54,8 @@ CHOICES = {
                        "images while its surface is near-specular",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
                 "steadily",
+    "frozen": "each iteration's render, loss and backward pass recorded once and replayed "
+              "(dr.freeze): no Python tracing per iteration; same results",
 }
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name

@@ -330,8 +330,7 @@ def status(name: str, as_json: bool) -> None:
         "elapsed": f"{j.elapsed_seconds:.1f} s",
         "parameters": ", ".join(p.key for p in spec.parameters),
         "best result": "values +- standard errors" if j.best_parameters else None,
-        **{f"  {p.key}": workflow.estimated(p.value, p.standard_error, p.interval)
-           for p in j.best_parameters},
+        **{f"  {p.key}": workflow.verdict(p.value, p) for p in j.best_parameters},
         "references": ", ".join(workflow.reference_label(r)
                                 for r in workflow.reference_files(spec.references)),
         "fit exposure": "yes (an RGB gain per reference)" if spec.fit_exposure else None,
@@ -365,7 +364,8 @@ def result(name: str, which: str, estimate: bool, as_json: bool) -> None:
     """Show a job's result: its iteration, loss, parameter values and exposure gains.
 
     Each value comes with its standard error (0.412 +- 0.003: how far the images let it be
-    from the truth), one-sided at a bound, or 'not determined'; an ended job's come with
+    from the truth), one-sided at a bound, or 'not determined by these images' and why
+    (then no number: the job's notes say what would decide it); an ended job's come with
     it, a paused job's with --estimate. Values of large parameters (textures, grids) are
     not printed: 'matopt job export' writes them. The gains (with --fit-exposure) are what
     each reference's render was multiplied by.
@@ -377,8 +377,7 @@ def result(name: str, which: str, estimate: bool, as_json: bool) -> None:
         return
     rows = {"job": r.job, "which": which.lower(), "iteration": r.iteration,
             "loss": number(r.loss)}
-    rows.update({p.key: workflow.estimated(p.value, p.standard_error, p.interval)
-                 if not p.blob else f"{p.blob} (shape "
+    rows.update({p.key: workflow.verdict(p.value, p) if not p.blob else f"{p.blob} (shape "
                  f"{list(p.shape)})" for p in r.parameters})
     rows.update(workflow.gain_fields(r.gains))
     rows["standard errors"] = "\n  ".join(r.standard_error_notes) or None

@@ -289,7 +289,7 @@ class ParamsTable(QWidget):
                     continue
                 item = self.table.item(i, CURRENT)
                 item.setText("(large: see export)" if not v.value else
-                             workflow.estimated(v.value, v.standard_error, v.interval)
+                             workflow.verdict(v.value, v)
                              if len(v.standard_error) else format_values(v.value))
                 if self.rows[i].parameter.kind == pb.PARAMETER_KIND_RGB and len(v.value) >= 3:
                     item.setIcon(swatch(v.value))

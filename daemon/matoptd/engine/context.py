@@ -52,6 +52,27 @@ class Context:
         return self._loop.spp
 
     @property
+    def integrator(self):
+        """The integrator the loss's renders use (made once the choices have begun)."""
+        return self._loop.renders.integrator
+
+    @property
+    def loss(self):
+        """The job's loss (losses.py)."""
+        return self._loop.loss
+
+    @property
+    def render_hooks(self) -> list[str]:
+        """The choices in force that map a sensor's renders or keep them (by name)."""
+        loop = self._loop
+        return [c.name for c in loop.active
+                if c in loop._hooks["on_images"] or c.wants_images]
+
+    def note(self, line: str) -> None:
+        """A line for the job's notes, said during the job (reported at its end)."""
+        self._loop.said.append(line)
+
+    @property
     def initial(self) -> dict[str, np.ndarray]:
         """theta_0, once the loop has read it."""
         return self._loop.initial
@@ -83,6 +104,10 @@ class Context:
     def holding(self, values: dict[str, np.ndarray]):
         """The scene with these parameters set to ``values`` for a while (a context)."""
         return self._loop.renders.holding(values)
+
+    def seeds(self, n: int) -> list[int]:
+        """This iteration's render seeds of slot n's sensor."""
+        return self._loop.renders.seeds(self.iteration, n)
 
     def sensor_images(self, n: int, sensor: int, draw: int = 0, spp: int | None = None
                       ) -> list:

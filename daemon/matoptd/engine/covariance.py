@@ -128,7 +128,9 @@ def determined(hessian: np.ndarray, spread: np.ndarray
     more than NULL_WEIGHT of itself in them is not determined."""
     p = len(hessian)
     diagonal = np.diag(hessian)
-    noisy = diagonal <= NOISE_LEVELS * np.diag(spread)
+    # a column that is 0 without noise (nothing in view depends on it) is not noisy: the
+    # render does not change with it
+    noisy = (diagonal <= NOISE_LEVELS * np.diag(spread)) & (np.diag(spread) > 0)
     inverse = np.zeros((p, p))
     ok = np.zeros(p, dtype=bool)
     idx = np.flatnonzero(~noisy & (diagonal > 0))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,29 @@ class Kept:
     log: bool = False
 
 
+@dataclass(frozen=True)
+class Wander:
+    """How far a parameter wandered where the history found it undecided by its wandering
+    (a drift on noise, two parameters moving in step at a level loss), on the value's scale,
+    the note that says so, and what that note becomes where the standard errors cover the
+    wander: then it is the scatter the interval allows, not a contradiction of it."""
+
+    moved: np.ndarray
+    note: str
+    within: str
+
+
+@dataclass
+class Diagnosis:
+    """The notes, and the parameters they say these images do not decide, each with why in a
+    few words (what a result's verdict on it says: engine/verdicts.py), and how far those
+    found so by their wandering wandered."""
+
+    notes: list[str] = field(default_factory=list)
+    undecided: dict[str, str] = field(default_factory=dict)
+    wander: dict[str, Wander] = field(default_factory=dict)
+
+
 DECIDERS = ("more views (another sensor that sees them), a reference that shows what "
             "separates them, or a fixed value for one of them (leave it out of the selection)")
 DECIDER = ("more views (another sensor that sees it), larger images or more samples, or a "
@@ -32,7 +55,7 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
              truth_errors: dict[str, list[float]] | None = None,
              gradients: dict[str, list[np.ndarray]] | None = None,
              traded: set[frozenset[str]] = frozenset(),
-             undetermined: set[str] = frozenset()) -> list[str]:
+             undetermined: set[str] = frozenset()) -> Diagnosis:
     """``trajectories``: per parameter, its value at each iteration (iterations x components),
     for the parameters small enough to be recorded inline, and the mean over components for
     the others (textures, grids). ``truth_errors``: per parameter with a ground truth, its
@@ -40,7 +63,8 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
     each step (the latest last). ``traded`` and ``undetermined``: the pairs and parameters
     the standard errors already name (engine/uncertainty.py), whose notes from the history
     would say less."""
-    notes = undecided(losses, trajectories or {}, truth_errors or {}, traded, undetermined)
+    out = undecided(losses, trajectories or {}, truth_errors or {}, traded, undetermined)
+    notes = out.notes
     for key, s in settings.items():
         v = values.get(key)
         if v is None:
@@ -62,6 +86,13 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                          f"averaged {_short(mean)} (standard error {_short(se)}), no consistent "
                          "sign, so the images did not steer it there; what would decide it: "
                          f"{DECIDER}")
+            if key not in out.undecided:
+                moved = np.abs(np.asarray(b) - np.asarray(a))
+                out.undecided[key] = "it drifted on gradients of no consistent sign"
+                out.wander[key] = Wander(moved, notes[-1], (
+                    f"{key} drifted by {_short(moved)} over its last {n} iterations on "
+                    "gradients of no consistent sign: within its interval's width, the scatter "
+                    "that interval allows"))
         else:
             notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "
@@ -79,7 +110,7 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                      "zeroed, and those components kept their values")
     if skipped_steps:
         notes.append(f"{skipped_steps} step(s) were skipped: the loss was NaN/Inf")
-    return notes
+    return out
 
 
 def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
@@ -107,32 +138,42 @@ def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
 def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
               truth_errors: dict[str, list[float]],
               traded: set[frozenset[str]] = frozenset(),
-              undetermined: set[str] = frozenset()) -> list[str]:
+              undetermined: set[str] = frozenset()) -> Diagnosis:
     """Where the images do not decide: a parameter that moves away from a given truth while
     the render keeps matching, and pairs of parameters that trade off (unless the standard
     errors' correlations name them: ``traded``), and parameters that never moved (unless
     found not determined)."""
-    notes = []
+    out = Diagnosis()
+    notes, found = out.notes, out.undecided
     for key, first, best, last in drifts_from_truth(losses, truth_errors):
         notes.append(f"{key}: the render matches the references as well as it did, but the "
                      f"error against the given truth grew from {best:.3g} (its lowest) to "
                      f"{last:.3g} (started at {first:.3g}): these images do not decide it; what "
                      f"would: {DECIDER}")
-    for a, b, r in trade_offs(losses, trajectories):
+        found.setdefault(key, "the render kept matching while its error against the given "
+                              "truth grew")
+    for a, b, r, spans in trade_offs(losses, trajectories):
         if frozenset((a, b)) in traded:
             continue
         how = "rises as the other falls" if r < 0 else "moves with the other"
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
                      f"{r:+.2f}) while the loss stays level, so the images do not tell them "
                      f"apart; what would decide them: {DECIDERS}")
+        within = (f"{a} and {b} wandered in step at a level loss (correlation {r:+.2f}), "
+                  "each within its interval's width: the scatter their intervals allow")
+        for one, other, span in ((a, b, spans[0]), (b, a, spans[1])):
+            if one not in found:
+                found[one] = f"it trades off with {other} at a level loss"
+                out.wander[one] = Wander(np.array([span]), notes[-1], within)
     for key in unmoved(trajectories, losses):
         if key in undetermined:
             continue
+        found.setdefault(key, "it never moved: the images carry no gradient for it")
         notes.append(f"{key} hardly moved while the loss fell: the images carry no gradient "
                      "for it (light that would show it may never reach the camera, e.g. "
                      "transmission at a small max_depth); what would decide it: a deeper "
                      f"max_depth, {DECIDER}")
-    return notes
+    return out
 
 
 def _smooth(x: np.ndarray, k: int = 5) -> np.ndarray:
@@ -184,8 +225,9 @@ def _series(path: np.ndarray) -> np.ndarray:
 
 
 def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
-               min_correlation: float = 0.8) -> list[tuple[str, str, float]]:
-    """(a, b, correlation) for pairs of parameters that both wandered over the second half of
+               min_correlation: float = 0.8
+               ) -> list[tuple[str, str, float, tuple[float, float]]]:
+    """(a, b, correlation, how far each wandered: the span of its smoothed mean) for pairs of parameters that both wandered over the second half of
     the history (by more than 2% of their value, turning back at least once) in step with
     each other while the loss stayed level: a valley the images cannot resolve. A parameter
     still heading one way is converging (or not yet done), not wandering: two of those move
@@ -210,7 +252,7 @@ def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
             n = min(len(moving[a]), len(moving[b]))
             r = float(np.corrcoef(moving[a][-n:], moving[b][-n:])[0, 1])
             if np.isfinite(r) and abs(r) >= min_correlation:
-                out.append((a, b, r))
+                out.append((a, b, r, tuple(float(np.ptp(moving[k])) for k in (a, b))))
     return out
 
 

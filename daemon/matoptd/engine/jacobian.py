@@ -14,9 +14,12 @@ J's own noise does not inflate it; with prb, prb_basic and prbvolpath both estim
 one pass at twice the samples, and every forward pass of a round replays one primal pass
 (split_samples.py). A column whose J^T J its noise still swamps gets more samples
 (``linearize``). A gain's column is the gained render's channel itself. A texture or grid
-enters as its mean level per channel (one direction: every texel moved together), which is
-what trades against a scalar (a medium's albedo grid against its sigma_t); a standard error
-per texel would take one pass per texel.
+enters as its low-frequency modes per channel (``MODES``): its mean level (every texel moved
+together: what trades against a scalar, a medium's albedo grid against its sigma_t) and a
+left-right and a top-bottom ramp across it (a brighter left half can stand in for a light
+or a roughness that shifts light across the image). Held at its recovered pattern, a texture
+that could explain the image in a scalar's place would not widen that scalar's interval. A
+standard error per texel would take one pass per texel.
 
 The render noise (S_r) and the residual of the mean render (S_R: the reference's own noise
 and what the scene does not model) come from two more renders A, B at the job's spp:
@@ -43,6 +46,12 @@ FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators wit
 
 
 MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
+
+
+# A texture's or grid's directions in J, per channel: its mean level, then ramps from -1 to 1
+# along its width and its height (axes -2 and -3 of a (..., H, W, C) tensor). The ramps go
+# first when the components pass MAX_COMPONENTS or their passes the budget.
+MODES = ("mean level", "left-right ramp", "top-bottom ramp")
 
 
 BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp follows, down to 1)
@@ -88,9 +97,10 @@ class Quantity:
     lo: float              # the range it is kept in (a width's floor applied when log)
     hi: float
     floor: float = 0.0     # the least value it is shown at (a principled roughness)
-    channels: int = 0      # > 0: a texture or grid, estimated as its mean level per channel
+    channels: int = 0      # > 0: a texture or grid, estimated by its MODES per channel
     difference: bool = False  # J by a central difference (a dielectric's eta)
     eta: bool = False      # a dielectric's eta (its difference step)
+    shape: tuple[int, ...] = ()  # a texture's or grid's, channels last (() : mean level only)
 
 
 @dataclass
@@ -120,15 +130,39 @@ class _Component:
     key: str        # the quantity's key, or "" for a gain
     index: int      # component of the value, or channel of a level or a gain
     sensor: int = -1  # for a gain
+    mode: int = 0   # of a texture or grid: which of MODES
 
 
-def components(quantities: list[Quantity], sensors: dict[int, Sensor]) -> list[_Component]:
+def modes(q: Quantity) -> list[int]:
+    """The MODES a texture or grid enters J by: its mean level, and a ramp along each of
+    its width and height that is longer than one texel."""
+    if len(q.shape) < 3 or int(np.prod(q.shape)) != q.value.size:
+        return [0]
+    return [0] + [m for m, axis in ((1, -2), (2, -3)) if q.shape[axis] > 1]
+
+
+def basis(q: Quantity, mode: int) -> np.ndarray:
+    """The flat weight of each element of ``q`` in a mode (every channel alike)."""
+    if mode == 0:
+        return np.ones(q.value.size)
+    axis = -2 if mode == 1 else -3
+    ramp = np.linspace(-1.0, 1.0, q.shape[axis])
+    shape = [1] * len(q.shape)
+    shape[axis] = q.shape[axis]
+    return np.broadcast_to(ramp.reshape(shape), q.shape).ravel()
+
+
+def components(quantities: list[Quantity], sensors: dict[int, Sensor], smooth: bool = True
+               ) -> list[_Component]:
+    """Each quantity's components (a texture's or grid's MODES per channel, mean levels
+    first, the ramps only with ``smooth``), then each gain's."""
     out = []
     for q in quantities:
         if q.channels:
-            out += [_Component(f"{q.key} (mean level" + (f", channel {c})" if q.channels > 1
-                                                          else ")"), q.key, c)
-                    for c in range(q.channels)]
+            for m in modes(q) if smooth else [0]:
+                out += [_Component(f"{q.key} ({MODES[m]}" + (f", channel {c})" if q.channels > 1
+                                                             else ")"), q.key, c, mode=m)
+                        for c in range(q.channels)]
         else:
             out += [_Component(q.key if q.value.size == 1 else f"{q.key}[{c}]", q.key, c)
                     for c in range(q.value.size)]
@@ -162,6 +196,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     began = time.perf_counter()
     comps = components(quantities, sensors)
     if len(comps) > MAX_COMPONENTS:
+        comps = components(quantities, sensors, smooth=False)
+    if len(comps) > MAX_COMPONENTS:
         return Linearization(comps, None)
     by_key = {q.key: q for q in quantities}
     renders = {s: [_render(scene, params, integrator, s, job.spp, _draw(job.seed, n))
@@ -171,8 +207,6 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
     budget = min(BUDGET * job.seconds, BUDGET_CAP)
-    count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
-                                       comps, by_key, params))
     split = split_samples.shares_primal(integrator)
 
     def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
@@ -183,6 +217,13 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         # else two estimates of a primal and a forward pass (or two sides) each
         return 2 * render(2 * s) if split else 4 * render(s)
 
+    count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                       comps, by_key, params))
+    if any(c.mode for c in comps) and count * cost(1) > budget / 2:
+        # the ramps' passes at 1 spp alone would pass half the budget: mean levels only
+        comps = components(quantities, sensors, smooth=False)
+        count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
+                                           comps, by_key, params))
     spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
@@ -201,7 +242,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
             for ks in passes:
                 q = by_key[comps[ks[0]].key]
                 pair = _columns(scene, params, integrator, integrator_name, q,
-                                [comps[k].index for k in ks], s, spp, seeds, together, traced)
+                                [comps[k].index for k in ks], s, spp, seeds, together, traced,
+                                comps[ks[0]].mode)
                 for n, new in enumerate(pair):
                     for k, column in zip(ks, new):
                         old = columns[s][n][k]
@@ -258,15 +300,23 @@ def _latent_step(q: Quantity) -> float:
                                                                  0.1))
 
 
-def _tangent(q: Quantity, indices: list[int]) -> np.ndarray:
-    """The value's change per unit of the latent components ``indices`` together (v for
-    log, 1 otherwise)."""
+def _direction(q: Quantity, indices: list[int], mode: int = 0) -> np.ndarray:
+    """The latent change per unit of the components ``indices`` together (of a texture or
+    grid: channels, in ``mode``)."""
     t = np.zeros(q.value.size, dtype=np.float64)
+    weight = basis(q, mode) if q.channels else None
     for index in indices:
         if q.channels:
-            t[index::q.channels] = 1.0
+            t[index::q.channels] = weight[index::q.channels]
         else:
             t[index] = 1.0
+    return t
+
+
+def _tangent(q: Quantity, indices: list[int], mode: int = 0) -> np.ndarray:
+    """The value's change per unit of the latent components ``indices`` together (times v
+    for log)."""
+    t = _direction(q, indices, mode)
     return t * q.value if q.log else t
 
 
@@ -276,12 +326,12 @@ def _passes(todo: list[int], comps: list[_Component], by_key: dict[str, Quantity
     (or an RGB texture's levels) in one pass where the render keeps colour channels apart:
     then a pixel's red channel depends on the red component alone, so a pass that moves all
     three at once reads each one's column off its own channel (a third of the passes)."""
-    out: dict[str, list[int]] = {}
+    out: dict[tuple[str, int], list[int]] = {}
     singles = []
     for k in todo:
         q = by_key[comps[k].key]
         if _channels_apart(q, params):
-            out.setdefault(q.key, []).append(k)
+            out.setdefault((q.key, comps[k].mode), []).append(k)
         else:
             singles.append([k])
     return [*out.values(), *singles]
@@ -304,23 +354,25 @@ def _channels_apart(q: Quantity, params: mi.SceneParameters) -> bool:
 
 def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
              indices: list[int], sensor: int, spp: int, seeds: tuple[int, int],
-             together: list[Quantity], traced: split_samples.Traced | None
+             together: list[Quantity], traced: split_samples.Traced | None, mode: int = 0
              ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, twice from
     independent samples, from passes that move them together (several only where
     ``_passes`` packed a colour's channels: component c is then read off channel c).
     ``together``: every quantity whose J comes in forward mode (``forward_mode``);
     ``traced``: this round's rays and primal pass, when the integrator's forward mode can
-    reuse them (split_samples: both estimates from one pass), else None."""
-    tangent = _tangent(q, indices)
+    reuse them (split_samples: both estimates from one pass), else None. ``mode``: of a
+    texture or grid, which of MODES."""
+    tangent = _tangent(q, indices, mode)
     if not forward_mode(q, integrator_name):
         h = _latent_step(q)
+        direction = _direction(q, indices, mode)
         sides = []
         for sign in (-1.0, 1.0):
             if q.log:
-                moved = q.value * np.exp(sign * h * (tangent != 0))
+                moved = q.value * np.exp(sign * h * direction)
             else:
-                moved = q.value + sign * h * tangent
+                moved = q.value + sign * h * direction
             # a bound is not crossed: the step shortens on that side
             moved = np.clip(moved, max(q.lo, q.floor), q.hi)
             params[q.key] = side = parameters.assign(params[q.key], moved)
@@ -340,7 +392,8 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
         latent = (np.log(np.maximum(b, 1e-30)) - np.log(np.maximum(a, 1e-30))) if q.log \
             else (b - a)
         return tuple([_channel(image_b - image_a, index, len(indices),
-                               _width(latent, _tangent(q, [index]))) for index in indices]
+                               _width(latent, _direction(q, [index], mode)))
+                 for index in indices]
                      for image_a, image_b in zip(images_a, images_b))
     # Every forward-mode quantity is a leaf of every pass, its tangent 0 but for q's: each
     # pass then traces the same kernel, compiled once rather than once per quantity. Opaque:
@@ -381,8 +434,11 @@ def forward_mode(q: Quantity, integrator_name: str) -> bool:
 
 
 def _width(latent: np.ndarray, moved: np.ndarray) -> float:
-    """The latent distance between a difference's two sides, over the elements ``moved``."""
-    step = np.abs(latent[moved != 0])
+    """The latent distance between a difference's two sides, in units of ``moved`` (the
+    direction's weight per element: a ramp moves its ends furthest), over the elements it
+    moves."""
+    on = moved != 0
+    step = np.abs(latent[on] / moved[on])
     return float(np.max(step)) if step.size and np.any(step) else 0.0
 
 

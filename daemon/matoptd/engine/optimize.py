@@ -19,6 +19,8 @@ the last iteration or L_i < min_error, back-propagates and steps to theta_{i+1}:
 So the best iteration's parameters are exactly the ones that produced its loss, and no step is
 taken whose result would never be rendered. With ``step_per_sensor`` (the thesis tool's way)
 each sensor's gradient is applied as soon as it is known; by default they accumulate.
+With the ``frozen`` choice a sensor group's render, loss and backward pass are one recorded
+function, replayed (engine/frozen.py): the same steps, without tracing them each iteration.
 
 Guards (guards.py): a non-finite gradient component is zeroed before the step (counted in
 ``nonfinite_steps``), a NaN/Inf loss skips the step (``skipped_steps``), and each variable is
@@ -93,6 +95,8 @@ class Optimization:
         self.initial: dict[str, np.ndarray] = {}
         self.factor = 1.0
         self.guards = Guards()
+        self.said: list[str] = []  # notes said during the job (reported at its end)
+        self.group = None  # a choice's stand-in for the renders and backward pass (frozen)
         saved = codec.loads(checkpoint) if checkpoint is not None else None
 
         self.choices = choices if choices is not None else build(settings)
@@ -124,6 +128,9 @@ class Optimization:
                     self.chosen.max_depth, self.chosen.depth_origin = begun.max_depth, begun.origin
         self.renders.integrator = integrator.make(self.chosen)
         self.integrator_reason = self.chosen.reason()
+        self.group = next(filter(None, (c.group_loss(self.ctx) for c in self.active)), None)
+        if self.group is not None:
+            self._apply()  # the scene's values as the group's leaves
         self.initial = self.theta()[0]
         if saved is not None:
             self._restore(saved)
@@ -151,7 +158,8 @@ class Optimization:
     def _apply(self) -> None:
         params = self.renders.params
         for key in self.parameters:
-            params[key] = self._value(key)
+            value = self._value(key)
+            params[key] = value if self.group is None else self.group.leaf(key, value)
         params.update()
 
     def theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
@@ -200,18 +208,17 @@ class Optimization:
         if s.sensor_mode == "step_per_sensor" and len(refs) > 1:
             losses = []
             for n, sensor in enumerate(refs):
-                total = self._sensor_loss(i, n, sensor)
+                total = self._loss(i, [(n, sensor)], 1)
                 losses.append(float(total.array[0]))
                 if not last:
-                    self._descend(total + sum(self._call("on_loss")) / len(refs), losses[-1],
+                    self._descend(total, sum(self._call("on_loss")) / len(refs), losses[-1],
                                   i, [(n, sensor)])
             loss = float(np.mean(losses))
         else:
-            total = sum(self._sensor_loss(i, n, sensor) for n, sensor in enumerate(refs))
-            total /= len(refs)
+            total = self._loss(i, list(enumerate(refs)), len(refs))
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
-                self._descend(total + sum(self._call("on_loss")), loss, i, list(enumerate(refs)))
+                self._descend(total, sum(self._call("on_loss")), loss, i, list(enumerate(refs)))
         theta, gains = self._read_theta()
         for key, v in theta.items():
             if v.size > SMALL:
@@ -260,22 +267,30 @@ class Optimization:
                 r.current = gains[r.sensor] if r.is_gain else values[key]
         return self._theta
 
+    def _loss(self, i: int, group: list[tuple[int, int]], divisor: int):
+        """The loss of ``group`` ((slot, sensor) pairs) over ``divisor``; frozen, with its
+        backward pass begun, where a choice stands in (``group``)."""
+        if self.group is not None:
+            return self.group(group, divisor)
+        return sum(self._sensor_loss(i, n, sensor) for n, sensor in group) / divisor
+
     def _sensor_loss(self, i: int, n: int, sensor: int):
         images = self.renders.sensor_images(i, n, sensor, 0, self.spp)
         if self._wants_images:
             self.ctx.images[sensor] = [dr.detach(img) for img in images]
         return self.renders.image_loss(images, self.renders.references[sensor])
 
-    def _descend(self, total, loss: float, i: int, sensors: list[tuple[int, int]]) -> None:
-        """One Adam step from the gradient of ``total``, the loss of ``sensors`` ((slot,
-        sensor) pairs)."""
+    def _descend(self, total, extra, loss: float, i: int, sensors: list[tuple[int, int]]
+                 ) -> None:
+        """One Adam step from the gradient of ``total`` + ``extra`` (the choices' terms),
+        ``total`` the loss of ``sensors`` ((slot, sensor) pairs)."""
         self._read_theta()
         if not math.isfinite(loss):
             self.progress.skipped_steps += 1
             return
         self.factor = schedule_factor(self.settings, i)
         self.opt.set_learning_rate({k: self.rate(k) for k in self.records})
-        dr.backward(total)
+        self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
         ctx.sensors, ctx.held = sensors, set()
         for c in self._hooks["on_gradient"]:

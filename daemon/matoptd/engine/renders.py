@@ -36,6 +36,24 @@ def seed(base: int, iteration: int, slot: int, slots: int) -> int:
     return (base * 1_000_003 + iteration * slots + slot) % 2**32
 
 
+def render_images(scene: mi.Scene, params: mi.SceneParameters, integrator, sensor: int,
+                  spp: int, seeds: list) -> list:
+    """A sensor's renders, one per seed (an int or an opaque ``mi.UInt32``), RGB."""
+    images = []
+    for s in seeds:
+        img = mi.render(scene, params, sensor=sensor, spp=spp, integrator=integrator, seed=s)
+        images.append(img[..., :3] if img.shape[2] > 3 else img)
+    return images
+
+
+def image_loss(fn: Callable, clamp: bool, images: list, target, weight):
+    """``fn`` of renders against a target, both clamped to [0, 1] where ``clamp``."""
+    if clamp:
+        images = [dr.clip(img, 0.0, 1.0) for img in images]
+        target = dr.clip(target, 0.0, 1.0)
+    return fn(images, target, weight)
+
+
 @dataclass
 class Renders:
     """The scene, its traversal (kept to the selected keys), the integrator and references;
@@ -51,28 +69,23 @@ class Renders:
     restore: Callable[[], None]
     integrator: mi.Integrator | None = None
 
+    def seeds(self, i: int, n: int, draw: int = 0) -> list[int]:
+        """The render seeds of slot n's sensor at iteration i; ``draw`` picks another set."""
+        renders = self.loss.renders
+        slots = len(self.references) * renders
+        return [(seed(self.settings.seed, i, n * renders + b, slots) + draw) % 2**32
+                for b in range(renders)]
+
     def sensor_images(self, i: int, n: int, sensor: int, draw: int, spp: int) -> list:
         """The renders the loss compares for slot n's sensor at iteration i, as the choices
         make them (times the gain, ...); ``draw`` picks another set of samples."""
-        renders = self.loss.renders
-        slots = len(self.references) * renders
-        images = []
-        for b in range(renders):
-            img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
-                            integrator=self.integrator,
-                            seed=(seed(self.settings.seed, i, n * renders + b, slots) + draw)
-                            % 2**32)
-            images.append(img[..., :3] if img.shape[2] > 3 else img)
-        return self.on_images(sensor, images)
+        return self.on_images(sensor, render_images(self.scene, self.params, self.integrator,
+                                                    sensor, spp, self.seeds(i, n, draw)))
 
     def image_loss(self, images: list, ref: Reference):
         """The loss of a sensor's renders against its reference (both clamped to [0, 1] when
         the job asks: an LDR comparison)."""
-        target = ref.image
-        if self.settings.clamp:
-            images = [dr.clip(img, 0.0, 1.0) for img in images]
-            target = dr.clip(target, 0.0, 1.0)
-        return self.loss.fn(images, target, ref.weight)
+        return image_loss(self.loss.fn, self.settings.clamp, images, ref.image, ref.weight)
 
     @contextlib.contextmanager
     def holding(self, values: dict[str, np.ndarray]):

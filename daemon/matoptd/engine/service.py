@@ -25,8 +25,10 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import choices, diagnosis, images, parameters, scene as scenes, scene_export, uncertainty
+from . import (choices, diagnosis, images, parameters, scene as scenes, scene_export,
+               uncertainty, verdicts)
 from .integrator import medium_notes
+from .kept_scenes import KeptScenes, Loaded
 from .optimize import Best, CheckpointError, Optimization, Reference
 
 
@@ -40,6 +42,7 @@ class Run:
     shapes: dict[str, list[int]]
     kinds: dict[str, str]
     max_samples: int = 0  # of one render call (settings.max_samples)
+    scene: Loaded | None = None  # the scene as loaded, kept again at release (unless replaced)
 
 
 class MitsubaEngine:
@@ -52,6 +55,7 @@ class MitsubaEngine:
         (self.cache / "scenes").mkdir(parents=True, exist_ok=True)
         self.runs: dict[str, Run] = {}
         self._preview: tuple[str, mi.Scene] | None = None  # the last scene rendered
+        self.kept = KeptScenes()  # the last released job's scene, for the next job on it
 
     # -- inputs -----------------------------------------------------------------------------
 
@@ -165,13 +169,20 @@ class MitsubaEngine:
 
     def start(self, job: str, settings: api.JobSettings, checkpoint: bytes | None
               ) -> api.Started:
-        """Builds the job's optimization. A scene kept for previews goes first: Mitsuba
-        dispatches a BSDF's or an emitter's virtual call over every live instance in the
-        process, so each scene held makes every job's kernels bigger."""
+        """Builds the job's optimization, on the scene a released job left when it is the
+        same one (loaded for the same keys), else on a new load. A scene kept for previews or
+        for another scene's jobs goes first: Mitsuba dispatches a BSDF's or an emitter's
+        virtual call over every live instance in the process, so each scene held makes every
+        job's kernels bigger, and a scene loaded beside it gets other instance ids, which
+        the kernel cache sees as other kernels."""
         self._preview = None
         began = time.perf_counter()
         keys = [p.key for p in settings.parameters]
-        loaded = self.load(settings.scene, keys)
+        key = (settings.scene.key, tuple(keys))
+        held = self.kept.take(key)
+        if held is None:
+            held = Loaded.of(self.load(settings.scene, keys), key)
+        loaded = held.scene
         chosen = choices.build(settings)
         loading = choices.Loading(self.layout(settings.scene), lambda path: scenes.load(
             path, settings.scene.overrides, settings.scene.display, keys,
@@ -199,8 +210,10 @@ class MitsubaEngine:
             opt.progress.elapsed += time.perf_counter() - began
         shapes = {k: list(listed[k].shape) if k in listed else [] for k in keys}
         kinds = {k: listed[k].kind if k in listed else "vector" for k in keys}
+        # A choice that loaded the scene anew (filter scaling) leaves nothing to keep.
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
-                             shapes, kinds, settings.max_samples)
+                             shapes, kinds, settings.max_samples,
+                             held if loaded is held.scene else None)
         return api.Started(opt.progress.iteration, opt.integrator_name, opt.integrator_reason,
                            list(opt.renders.references), opt.notes, shapes, kinds, opt.status())
 
@@ -249,9 +262,7 @@ class MitsubaEngine:
         opt = run.opt
         results = _results(run, _chosen(opt), render)
         opt.flush()
-        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds)
-        for r in results:
-            r.standard_errors, r.gain_errors = estimates[r.which].errors, estimates[r.which].gains
+        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds, run.shapes)
         shown = estimates.get("best") or estimates.get("last") or uncertainty.Estimate({}, {}, [])
         paths: dict[str, list[list[float]]] = {}
         errors: dict[str, list[float]] = {}
@@ -266,13 +277,20 @@ class MitsubaEngine:
         for key, means in ((k, r.means) for k, r in opt.records.items()):
             if key not in trajectories and len(means) >= 20:
                 trajectories[key] = np.array(means)[:, None]
-        notes = diagnosis.diagnose(
+        diagnosed = diagnosis.diagnose(
             opt.kept, opt.progress.last.values, [h.loss for h in history],
             opt.progress.nonfinite_steps, opt.progress.skipped_steps, trajectories,
             {k: e for k, e in errors.items() if len(e) == len(history)},
             {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
-        return api.Finished(results, notes + shown.notes, _counters(opt))
+        # One verdict per component, the diagnosis and the standard errors reconciled: what
+        # every surface shows.
+        said = verdicts.reconcile(shown, diagnosed, {})
+        for r in results:
+            e = estimates.get(r.which)
+            final = verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)) if e else said
+            r.standard_errors, r.gain_errors = final.errors, final.gains
+        return api.Finished(results, said.notes + opt.said, _counters(opt))
 
     def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
                  ) -> api.Estimated:
@@ -287,16 +305,24 @@ class MitsubaEngine:
             chosen = [c for c in _chosen(opt) if c[0] == which]
             if not chosen:
                 raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
-            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds)[which]
-            return api.Estimated(e.errors, e.gains, e.notes)
+            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds,
+                                    self.runs[run].shapes)[which]
+            said = verdicts.reconcile(e, diagnosis.Diagnosis(), {})
+            return api.Estimated(said.errors, said.gains, said.notes)
         finally:
             self.release(run)
 
     def release(self, job: str) -> None:
         """Drops the job's run and returns the memory it held: Dr.Jit keeps freed buffers in
-        a cache of its own, which goes back only when asked."""
-        self.runs.pop(job, None)
+        a cache of its own, which goes back only when asked. Its scene is kept, as loaded,
+        for the next job on it: the run goes first, so that none of its buffers stay."""
+        run = self.runs.pop(job, None)
+        held = run.scene if run is not None else None
+        del run
         gc.collect()
+        if held is not None:
+            self.kept.give_back(held)
+            del held
         if not self.runs:
             dr.flush_malloc_cache()
             _trim_heap()
@@ -309,6 +335,13 @@ def _trim_heap() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass  # not glibc: the allocator keeps its own policy
+
+
+def _small(values: dict[str, np.ndarray], kinds: dict[str, str]) -> dict[str, int]:
+    """The component count of each value a result gives a verdict per component: those
+    shown inline, but textures and grids (their mean level is in the notes)."""
+    return {k: int(np.size(v)) for k, v in values.items()
+            if np.size(v) <= api.SMALL and kinds.get(k) not in ("texture", "volume_grid")}
 
 
 def _counters(opt: Optimization) -> api.Counters:

@@ -22,7 +22,7 @@ from ..range_notes import at_bound
 from . import covariance, parameters
 from .diagnosis import DECIDER, DECIDERS
 from .jacobian import (BUDGET, MAX_COMPONENTS, Job, Linearization, Quantity, Sensor, _Component,
-                       _latent_step, linearize)
+                       _latent_step, basis, linearize)
 from .losses import LOSSES
 from .optimize import Best, Optimization, schedule_factor
 
@@ -49,6 +49,9 @@ class Estimate:
     # off, in pairs, and those it found not determined
     traded: set[frozenset[str]] = field(default_factory=set)
     undetermined: set[str] = field(default_factory=set)
+    # notes about one parameter (its bound, its interval's width, a texture's mean level),
+    # by key: engine/verdicts.py drops them where the diagnosis overrides the verdict
+    about: dict[str, list[str]] = field(default_factory=dict)
 
 
 def estimate(linearization: Linearization, quantities: list[Quantity],
@@ -63,7 +66,7 @@ def estimate(linearization: Linearization, quantities: list[Quantity],
             f"{MAX_COMPONENTS}): the Jacobian takes a render pass per component"])
     dynamics = None if adam is None else _dynamics(comps, quantities, adam)
     result = covariance.estimate(linearization.fit, dynamics)
-    errors, gains, notes = _report(comps, quantities, sensors, result, job)
+    errors, gains, notes, about = _report(comps, quantities, sensors, result, job)
     owner = [c.key or f"gain{c.sensor}" for c in comps]
     index = {c.name: i for i, c in enumerate(comps)}
     traded = {frozenset((owner[index[a]], owner[index[b]]))
@@ -71,7 +74,7 @@ def estimate(linearization: Linearization, quantities: list[Quantity],
                                                    list(index))}
     return Estimate(errors, gains, notes, list(index), result.covariance,
                     linearization.seconds, {t for t in traded if len(t) == 2},
-                    {owner[i] for i in np.flatnonzero(~result.determined)})
+                    {owner[i] for i in np.flatnonzero(~result.determined)}, about)
 
 
 def _dynamics(comps: list[_Component], quantities: list[Quantity], adam: dict[str, Adam]
@@ -93,12 +96,14 @@ def _dynamics(comps: list[_Component], quantities: list[Quantity], adam: dict[st
         rates[:, i] = a.rates
         q = by_key.get(c.key)
         if q is not None and q.channels:
-            # A mean level moves by the mean of its texels' steps: d = mean(d_k) / n_c,
-            # held as an equivalent second moment (Adam's v is the texels').
+            # A mode of weights r_k (a mean level: all 1) moves by its texels' steps
+            # projected on it: d = sum(r_k^2 d_k) / (sum r_k^2)^2 (a mean level's: mean(d_k) /
+            # n), held as an equivalent second moment (Adam's v is the texels').
             v = a.second_moment.reshape(-1, q.channels)[:, c.index] / (1 - covariance.BETA_2
                                                                        ** max(a.count, 1))
-            per = np.mean(1 / (np.sqrt(v) + covariance.EPSILON))
-            level = (len(v) / per) ** 2
+            r2 = basis(q, c.mode).reshape(-1, q.channels)[:, c.index] ** 2
+            per = np.sum(r2 / (np.sqrt(v) + covariance.EPSILON))
+            level = (np.sum(r2) ** 2 / per) ** 2
             second[i] = level * (1 - covariance.BETA_2 ** max(count, 1))
             measured[i] = False
             continue
@@ -110,58 +115,74 @@ def _dynamics(comps: list[_Component], quantities: list[Quantity], adam: dict[st
 
 def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[int, Sensor],
             result: covariance.Estimate, job: Job
-            ) -> tuple[dict[str, api.StandardError], dict[int, api.StandardError], list[str]]:
+            ) -> tuple[dict[str, api.StandardError], dict[int, api.StandardError], list[str],
+                       dict[str, list[str]]]:
     """Standard errors on the value's scale (log ones by the delta method, v * se(log v)),
-    how to read each component, and the notes."""
+    how to read each component (and why one is not determined), the notes, and the notes
+    about one parameter by its key. A component whose standard error spans more than a
+    quarter of its range is not determined either: its interval would say nothing."""
     sd = np.sqrt(np.maximum(np.diag(result.covariance), 0))
+    why = _reasons(comps, result)
     errors: dict[str, api.StandardError] = {}
     notes: list[str] = []
+    about: dict[str, list[str]] = {}
     start = 0
     for q in quantities:
-        n = q.channels or q.value.size
+        n = len([c for c in comps if c.key == q.key])
         latent, ok = sd[start:start + n], result.determined[start:start + n]
         start += n
-        if q.channels:
+        if q.channels:  # its mean level per channel comes first; its smooth modes follow
             level = q.value.reshape(-1, q.channels).mean(axis=0)
-            shown = np.where(ok, latent * (level if q.log else 1.0), np.inf)
-            notes.append(
+            shown = np.where(ok[:q.channels], latent[:q.channels] * (level if q.log else 1.0),
+                             np.inf)
+            modes = n // q.channels - 1
+            about.setdefault(q.key, []).append(
                 f"{q.key}: its mean level is known to +- " + ", ".join(_short(shown)) +
                 " (one standard error" + (" per channel" if q.channels > 1 else "") +
-                ", its texels' pattern held as recovered); no standard error per texel: "
-                f"that would take a render pass per texel ({q.value.size // q.channels})")
+                (f", with {modes} smooth pattern(s) across it estimated beside it" if modes
+                 else ", its texels' pattern held as recovered") +
+                "); no standard error per texel: that would take a render pass per texel "
+                f"({q.value.size // q.channels})")
             continue
         value = q.value.astype(np.float64)
         error = np.where(ok, latent * (value if q.log else 1.0), np.inf)
+        reason = list(why[start - n:start])
         lower = np.maximum(q.lo, q.floor)
-        low = at_bound(value, lower) | ((q.floor > 0) & (value <= q.floor + 1e-6))
-        high = at_bound(value, q.hi)
-        reading = ["not_determined" if not d else "at_lower_bound" if lo else
-                   "at_upper_bound" if hi else "two_sided" for d, lo, hi in zip(ok, low, high)]
-        errors[q.key] = api.StandardError(error.astype(np.float32), reading)
         span = (np.log(q.hi / lower) if q.log and lower > 0 and math.isfinite(q.hi)
                 else q.hi - q.lo if not q.log else math.inf)
         wide = ok & (latent > 0.25 * (span if math.isfinite(span) else 1.0))
         for c in np.flatnonzero(wide):
             what = (f"more than a quarter of its range [{q.lo:g}, {q.hi:g}]"
                     if math.isfinite(span) else "more than a quarter of its value")
-            notes.append(f"{_name(q, c)}: standard error {error[c]:.3g}, {what}: these "
-                         f"images do not decide it; what would: {DECIDER}")
+            about.setdefault(q.key, []).append(
+                f"{_name(q, c)}: standard error {error[c]:.3g}, {what}: these images do not "
+                f"decide it; what would: {DECIDER}")
+            reason[c] = f"its standard error ({error[c]:.3g}) spans {what}"
+        ok = ok & ~wide
+        error = np.where(ok, error, np.inf)
+        low = at_bound(value, lower) | ((q.floor > 0) & (value <= q.floor + 1e-6))
+        high = at_bound(value, q.hi)
+        reading = ["not_determined" if not d else "at_lower_bound" if lo else
+                   "at_upper_bound" if hi else "two_sided" for d, lo, hi in zip(ok, low, high)]
+        errors[q.key] = api.StandardError(error.astype(np.float32), reading,
+                                          [r if not d else "" for r, d in zip(reason, ok)])
         for c in np.flatnonzero(ok & (low | high)):
             bound = lower if low[c] else q.hi
             where = "its floor" if low[c] and q.floor else "a bound"
-            notes.append(f"{_name(q, c)}: ended at {where} "
-                         f"{bound:g}, so its interval is one-sided: the truth lies within "
-                         f"{'+' if low[c] else '-'}{2 * error[c]:.3g} of it (two standard "
-                         "errors, on the side away from the bound)")
+            about.setdefault(q.key, []).append(
+                f"{_name(q, c)}: ended at {where} {bound:g}, so its interval is one-sided: the "
+                f"truth lies within {'+' if low[c] else '-'}{2 * error[c]:.3g} of it (two "
+                "standard errors, on the side away from the bound)")
     gains: dict[int, api.StandardError] = {}
     for s, sensor in sensors.items():
         if sensor.gain is None:
             continue
         latent, ok = sd[start:start + 3], result.determined[start:start + 3]
-        start += 3
         gains[s] = api.StandardError(
             np.where(ok, latent * sensor.gain, np.inf).astype(np.float32),
-            ["two_sided" if d else "not_determined" for d in ok])
+            ["two_sided" if d else "not_determined" for d in ok],
+            [r if not d else "" for r, d in zip(why[start:start + 3], ok)])
+        start += 3
     for group in result.groups:
         names = [comps[k].name for k in group]
         if len(names) == 1:
@@ -187,7 +208,23 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         notes.append("standard errors are those of a least-squares fit to one render (the "
                      f"L2 approximation): {job.loss} is not least squares, and how far Adam's "
                      "last steps scatter is not modelled for it")
-    return errors, gains, notes
+    return errors, gains, notes, about
+
+
+def _reasons(comps: list[_Component], result: covariance.Estimate) -> list[str]:
+    """Why each component the estimate leaves undetermined is, in a few words ("" for the
+    determined ones)."""
+    why = ["" if d else "it lies in a direction these images do not resolve"
+           for d in result.determined]
+    for group in result.groups:
+        for k in group:
+            others = [comps[o].name for o in group if o != k]
+            why[k] = (f"it changes the render as {', '.join(others)} "
+                      f"{'does' if len(others) == 1 else 'do'}" if others
+                      else "the render does not change with it")
+    for k in np.flatnonzero(result.noisy):
+        why[k] = "its derivative was too noisy to estimate in the time allowed"
+    return why
 
 
 def _name(q: Quantity, c: int) -> str:
@@ -198,26 +235,27 @@ def _short(v: np.ndarray) -> list[str]:
     return [f"{x:.3g}" if np.isfinite(x) else "not determined" for x in np.ravel(v)]
 
 
-def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str]
-            ) -> dict[str, Estimate]:
-    """Estimates for a job's kept iterations (best, last), read from its Optimization; an
-    estimate that fails leaves the results as they are, with a note saying why."""
+def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str],
+            shapes: dict[str, list[int]]) -> dict[str, Estimate]:
+    """Estimates for a job's kept iterations (best, last), read from its Optimization
+    (``kinds`` and ``shapes`` of its parameters); an estimate that fails leaves the results
+    as they are, with a note saying why."""
     try:
-        return _of_kept(opt, chosen, kinds)
+        return _of_kept(opt, chosen, kinds, shapes)
     except Exception as exc:  # noqa: BLE001 - the job's results stand without them
         note = f"standard errors: not estimated ({type(exc).__name__}: {exc})"
         return {which: Estimate({}, {}, [note]) for which, _ in chosen}
 
 
-def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str]
-             ) -> dict[str, Estimate]:
+def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str],
+             shapes: dict[str, list[int]]) -> dict[str, Estimate]:
     """The images are linearized at the last iteration, and again at the best only when it
     lies further from it than two difference steps (over which J is taken as constant
     anyway) and the first kept within its share of the time J may take."""
     kept = []
     gained = {r.sensor for r in opt.records.values() if r.is_gain}
     for which, it in sorted(chosen, key=lambda c: c[0] != "last"):
-        quantities, skipped = _quantities(opt, it, kinds)
+        quantities, skipped = _quantities(opt, it, kinds, shapes)
         sensors = {s: Sensor(np.asarray(ref.image), None if ref.weight is None
                              else np.asarray(ref.weight),
                              it.gains.get(s) if s in gained else None, ref.name)
@@ -257,8 +295,8 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
     return out
 
 
-def _quantities(opt: Optimization, kept: Best, kinds: dict[str, str]
-                ) -> tuple[list[Quantity], list[str]]:
+def _quantities(opt: Optimization, kept: Best, kinds: dict[str, str],
+                shapes: dict[str, list[int]]) -> tuple[list[Quantity], list[str]]:
     out, skipped = [], []
     for key, k in opt.kept.items():
         value = np.asarray(kept.values[key], dtype=np.float64)
@@ -269,7 +307,8 @@ def _quantities(opt: Optimization, kept: Best, kinds: dict[str, str]
             continue
         eta = parameters.dielectric_eta(key)  # the log_space choice's kept range is v's
         out.append(Quantity(key, value, k.log, k.lo, k.hi, k.floor,
-                            max(opt.records[key].channels, 1) if summarized else 0, eta, eta))
+                            max(opt.records[key].channels, 1) if summarized else 0, eta, eta,
+                            tuple(shapes.get(key, ())) if summarized else ()))
     return out, skipped
 
 

@@ -55,12 +55,14 @@ def values_to_pb(values: dict[str, Values], shapes: dict[str, list[int]],
 
 
 def standard_error(errors: dict | None, key) -> dict:
-    """The standard_error and interval fields of a value or gain (none without one)."""
+    """The standard_error, interval and interval_reason fields of a value or gain (none
+    without one)."""
     e = (errors or {}).get(key)
     if e is None:
         return {}
     return {"standard_error": np.asarray(e.error, dtype=np.float32).ravel().tolist(),
-            "interval": [enums.parse(pb.Interval, r) for r in e.reading]}
+            "interval": [enums.parse(pb.Interval, r) for r in e.reading],
+            "interval_reason": list(e.reason) if any(e.reason) else []}
 
 
 def arrays_to_pb(values: dict[str, np.ndarray], shapes: dict[str, list[int]]

@@ -162,6 +162,12 @@ class Choice:
         """A term added to the loss that the step descends (not the loss recorded); 0: none."""
         return 0.0
 
+    def group_loss(self, ctx: Context):
+        """Once, after ``begin``: an object that takes over the loop's render, loss and backward
+        pass for a group of sensors (engine/frozen.py's ``FrozenLoss``: ``leaf``, a call,
+        ``backward``); None: the loop renders itself."""
+        return None
+
     def on_gradient(self, ctx: Context) -> dict[str, object]:
         """After the backward pass of ``ctx.sensors``, before the guards and the step: the
         gradients it sets (a Dr.Jit value), or HOLD for a step held, by key."""

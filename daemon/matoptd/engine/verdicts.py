@@ -1,0 +1,78 @@
+"""One verdict per recovered component, from the two things that judge it: the standard error
+(uncertainty.py, from the images linearized at the kept iteration) and the diagnosis
+(diagnosis.py, from the job's history). They look at different evidence and can disagree:
+a drift on gradients of no consistent sign, or two parameters wandering in step at a level
+loss, say the images do not decide a value that a local fit still pins to +- a little. The
+verdict takes the more cautious: where either finds a component not decided, it is not
+determined (standard error +inf, with the reason), and the notes that gave it an interval
+go. Every surface (status, result, export, the clients) shows what this returns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .. import engine_api as api
+from .diagnosis import Diagnosis
+
+if TYPE_CHECKING:  # uncertainty loads Mitsuba's integrators, which need a variant set
+    from .uncertainty import Estimate
+
+
+# An interval's width in standard errors (value +- 2): a wander over no more than this is the
+# scatter it allows. Over 6 seeds of the Cornell walls, wanders ran to 3.3 standard errors
+# while the intervals covered the truth.
+WIDTH = 4.0
+
+
+@dataclass
+class Verdicts:
+    """A kept iteration's verdicts: per value and per gain, and the notes that go with them
+    (the diagnosis's first)."""
+
+    errors: dict[str, api.StandardError]
+    gains: dict[int, api.StandardError]
+    notes: list[str]
+
+
+def reconcile(estimate: Estimate, diagnosed: Diagnosis, sizes: dict[str, int]) -> Verdicts:
+    """The estimate's verdicts, with the parameters the diagnosis finds undecided made not
+    determined. ``sizes``: the component count of each value a result shows inline, so that
+    an undecided one gets its verdict even where no standard error was estimated.
+
+    A finding from wandering (a drift on noise, two parameters in step at a level loss) is
+    the one an interval can answer: values that wandered over no more than their interval's
+    width (WIDTH standard errors) stayed where their intervals say they may be (the note says
+    so instead); where one of them wandered further, they are not determined."""
+    errors = dict(estimate.errors)
+    about = {key: list(notes) for key, notes in estimate.about.items()}
+    covered = {key: _covers(errors.get(key), w.moved) for key, w in diagnosed.wander.items()}
+    answered = {w.note: w.within for w in diagnosed.wander.values()
+                if all(covered[k] for k, o in diagnosed.wander.items() if o.note == w.note)}
+    for key, why in diagnosed.undecided.items():
+        had = errors.get(key)
+        if key in diagnosed.wander and diagnosed.wander[key].note in answered:
+            continue
+        if had is None and key not in sizes:
+            about.pop(key, None)  # a texture or grid: its mean level's note said +- too
+            continue
+        n = len(had.reading) if had is not None else sizes[key]
+        # a component the estimate left undetermined keeps its own reason
+        kept = ([r if d == "not_determined" and r else why
+                 for d, r in zip(had.reading, had.reason or [""] * n)]
+                if had is not None else [why] * n)
+        errors[key] = api.StandardError(np.full(n, np.inf, dtype=np.float32),
+                                        ["not_determined"] * n, kept)
+        about.pop(key, None)  # an interval or a bound's one-sided interval it no longer has
+    notes = ([answered.get(n, n) for n in diagnosed.notes]
+             + [note for key in about for note in about[key]] + list(estimate.notes))
+    return Verdicts(errors, dict(estimate.gains), notes)
+
+
+def _covers(verdict: api.StandardError | None, moved: np.ndarray) -> bool:
+    """Whether a verdict's intervals are finite and at least as wide as the wander."""
+    return (verdict is not None and bool(np.isfinite(verdict.error).all())
+            and bool(np.all(moved <= WIDTH * np.asarray(verdict.error, dtype=np.float64))))

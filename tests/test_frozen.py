@@ -1,0 +1,239 @@
+"""Frozen iterations (engine/choices/frozen.py, engine/frozen.py) in-process: a job run frozen
+follows the same trajectory as the same job unfrozen, for surfaces, textures (through a
+multires level change), media, several sensors, a spp schedule, a checkpoint in between and
+two jobs stepped in turn; it records again only when the structure changes, and says so; and
+it falls back, saying why, where a job cannot be frozen."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from matopt_api.v1 import matopt_pb2 as pb  # noqa: E402
+from matoptd import settings as api  # noqa: E402
+
+from conftest import wait_state  # noqa: E402
+from scenes import cornell_with_truth  # noqa: E402
+
+RED = "red.reflectance.value"
+GREEN = "green.reflectance.value"
+TEXTURE = "quad.bsdf.reflectance.data"
+GRID = "box.interior_medium.albedo.data"
+ALBEDO = "ball.interior_medium.albedo.value.value"
+
+
+@pytest.fixture(scope="module")
+def optimize():
+    mi.set_variant("llvm_ad_rgb")
+    from matoptd.engine import optimize
+    return optimize
+
+
+def _cornell(sensors: int = 1, block: bool = False):
+    scene = mi.cornell_box()
+    if block:  # a mesh of its own id, for its vertex positions
+        scene["block"] = {"type": "cube", "to_world": mi.ScalarTransform4f().scale(0.2),
+                          "bsdf": {"type": "diffuse"}}
+    scene["sensor"]["film"]["width"] = scene["sensor"]["film"]["height"] = 16
+    scene["integrator"]["max_depth"] = 3
+    for k in range(1, sensors):
+        scene[f"sensor{k}"] = dict(scene["sensor"], to_world=mi.ScalarTransform4f().look_at(
+            origin=[0.6 * k, 0.2, 3.9], target=[0, 0, 0], up=[0, 1, 0]))
+    return mi.load_dict(scene)
+
+
+def _lit(integrator: str, depth: int, origin: list[float], **shapes) -> mi.Scene:
+    """``shapes`` under a white environment, seen by a 16 px camera from ``origin``."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": depth},
+        "sensor": {"type": "perspective", "fov": 32, "to_world": mi.ScalarTransform4f().look_at(
+            origin=origin, target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
+        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}, **shapes})
+
+
+def _quad():
+    """A textured quad (16x16 float texture)."""
+    texels = np.random.default_rng(3).uniform(0.2, 0.8, (16, 16, 3)).astype(np.float32)
+    return _lit("prb", 3, [0, 0, 4], quad={"type": "rectangle", "bsdf": {
+        "type": "diffuse", "reflectance": {"type": "bitmap", "filter_type": "nearest",
+                                           "bitmap": mi.Bitmap(texels)}}})
+
+
+def _medium():
+    """A ball of homogeneous medium (prbvolpath)."""
+    fog = {"type": "homogeneous", "sigma_t": 2.0,
+           "albedo": {"type": "rgb", "value": [0.8, 0.5, 0.3]}}
+    return _lit("volpath", 6, [0, 0, 4],
+                ball={"type": "sphere", "bsdf": {"type": "null"}, "interior": fog})
+
+
+def _grid():
+    """A cube of heterogeneous medium whose albedo is an 8x8x8 RGB grid."""
+    voxels = np.random.default_rng(5).uniform(0.2, 0.8, (8, 8, 8, 3)).astype(np.float32)
+    return _lit("volpath", 4, [2, 1.5, 3.5], box={
+        "type": "cube", "to_world": mi.ScalarTransform4f().scale(0.8), "bsdf": {"type": "null"},
+        "interior": {"type": "heterogeneous", "sigma_t": 1.5, "albedo": {
+            "type": "gridvolume", "filter_type": "nearest", "grid": mi.VolumeGrid(voxels)}}})
+
+
+def _settings(keys, iterations: int = 8, spp_from=None, fit_exposure: bool = False,
+              sensor_mode: str = "accumulate", **choices: str) -> api.JobSettings:
+    return api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
+                           [api.ParameterSetting(k, 0.05, 0.0, 1.0) for k in keys],
+                           iterations=iterations, spp=4, choices=choices,
+                           spp_from=spp_from or {}, fit_exposure=fit_exposure,
+                           sensor_mode=sensor_mode)
+
+
+def _references(optimize, scene) -> dict:
+    return {n: optimize.Reference(mi.TensorXf(np.asarray(
+        mi.render(scene, sensor=n, spp=16, seed=99))[..., :3]), None, f"ref{n}")
+        for n in range(len(scene.sensors()))}
+
+
+def _start(make, keys) -> dict[str, np.ndarray]:
+    """Each parameter moved away from the scene's value (what the job starts from)."""
+    params = mi.traverse(make())
+    return {k: np.clip(np.asarray(params[k]).ravel() * 0.5 + 0.1, 0, 1) for k in keys}
+
+
+class Job:
+    """A job's loop on a fresh scene, its references rendered from the scene as loaded."""
+
+    def __init__(self, optimize, make, settings, checkpoint=None, moved: bool = True) -> None:
+        scene = make()
+        keys = [p.key for p in settings.parameters]
+        self.loop = optimize.Optimization(scene, settings, _references(optimize, scene),
+                                          checkpoint=checkpoint,
+                                          initial=_start(make, keys) if moved else None)
+        self.steps = []
+
+    def run(self, n: int) -> Job:
+        for _ in range(n):
+            self.steps.append(self.loop.step())
+        return self
+
+
+def _same(a: list, b: list) -> None:
+    """Two trajectories agree within float noise: losses and every value at every step."""
+    assert [s.iteration for s in a] == [s.iteration for s in b]
+    np.testing.assert_allclose([s.loss for s in a], [s.loss for s in b], rtol=1e-4)
+    for x, y in zip(a, b):
+        for key in x.values:
+            np.testing.assert_allclose(x.values[key], y.values[key], rtol=1e-4, atol=1e-6)
+
+
+def _why(loop) -> str:
+    return next(c.why for c in loop.choices if c.name == "frozen")
+
+
+@pytest.mark.parametrize("make, keys, extra", [
+    (_cornell, [RED, GREEN], {}),
+    (_quad, [TEXTURE], {}),               # multires: 4x4 -> 8x8 -> 16x16 during the job
+    (_medium, [ALBEDO], {}),
+    (_grid, [GRID], {}),
+    (lambda: _cornell(2), [RED, GREEN], {}),
+    (lambda: _cornell(2), [RED, GREEN], {"sensor_mode": "step_per_sensor"}),
+], ids=["surface", "texture", "medium", "grid", "two_sensors", "step_per_sensor"])
+def test_frozen_follows_the_unfrozen_trajectory(optimize, make, keys, extra):
+    frozen = Job(optimize, make, _settings(keys, **extra)).run(8)
+    plain = Job(optimize, make, _settings(keys, frozen="off", **extra)).run(8)
+    assert frozen.loop.group is not None and plain.loop.group is None
+    _same(frozen.steps, plain.steps)
+    moved = [k for k in keys if np.abs(frozen.steps[-1].values[k] - frozen.steps[0].values[k]).max()
+             > 0.05]
+    assert moved == keys  # it stepped (the same steps as unfrozen)
+    # One structure: recorded at the start (Dr.Jit records twice: a dry run, then for good),
+    # never again for the iterations' new seeds.
+    per_group = 2 if extra.get("sensor_mode") == "step_per_sensor" else 1
+    assert frozen.loop.group.recordings <= 2 * per_group
+    assert frozen.loop.said == []
+
+
+def test_multires_level_changes_keep_the_recording(optimize):
+    job = Job(optimize, _quad, _settings([TEXTURE])).run(8)
+    level = next(c for c in job.loop.choices if c.name == "multires").level[TEXTURE]
+    assert level == 2  # it went through 4x4 and 8x8 to 16x16 ...
+    assert job.loop.group.recordings <= 2  # ... while the scene's texture stayed 16x16
+
+
+def test_a_spp_schedule_records_again_and_says_so(optimize):
+    settings = {"keys": [RED, GREEN], "spp_from": {3: 8, 6: 12}}
+    frozen = Job(optimize, _cornell, _settings(**settings)).run(8)
+    plain = Job(optimize, _cornell, _settings(**settings, frozen="off")).run(8)
+    _same(frozen.steps, plain.steps)
+    assert [s.spp for s in frozen.steps] == [4, 4, 4, 8, 8, 8, 12, 12]
+    assert frozen.loop.said == ["frozen: iteration 3 recorded again (spp 4 -> 8)",
+                                "frozen: iteration 6 recorded again (spp 8 -> 12)"]
+    assert frozen.loop.group.recordings <= 6
+
+
+def test_a_checkpoint_resumes_frozen_on_the_same_trajectory(optimize):
+    settings = _settings([RED, GREEN])
+    first = Job(optimize, _cornell, settings).run(4)
+    resumed = Job(optimize, _cornell, settings, checkpoint=first.loop.checkpoint()).run(4)
+    plain = Job(optimize, _cornell, _settings([RED, GREEN], frozen="off")).run(8)
+    assert resumed.steps[0].iteration == 4 and resumed.loop.group is not None
+    _same(first.steps + resumed.steps, plain.steps)
+
+
+def test_two_jobs_stepped_in_turn_follow_their_own_trajectories(optimize):
+    """A worker switching between two jobs' scenes, one iteration at a time."""
+    walls = Job(optimize, _cornell, _settings([RED, GREEN]))
+    texture = Job(optimize, _quad, _settings([TEXTURE]))
+    for _ in range(6):
+        walls.run(1)
+        texture.run(1)
+    _same(walls.steps, Job(optimize, _cornell, _settings([RED, GREEN], frozen="off")).run(6).steps)
+    _same(texture.steps, Job(optimize, _quad, _settings([TEXTURE], frozen="off")).run(6).steps)
+
+
+def test_a_choice_that_maps_the_renders_falls_back_and_says_why(optimize):
+    job = Job(optimize, _cornell, _settings([RED, GREEN], iterations=3, fit_exposure=True)).run(3)
+    assert job.loop.group is None
+    assert _why(job.loop) == ("not frozen: exposure_gains map or keep the renders themselves, "
+                              "outside what is recorded")
+    assert next(c for c in job.loop.choices if c.name == "frozen").notes() == [
+        f"frozen: {_why(job.loop)}"]
+
+
+def test_moving_geometry_falls_back_and_says_why(optimize):
+    key = "block.vertex_positions"
+    job = Job(optimize, lambda: _cornell(block=True), _settings([key], iterations=1),
+              moved=False)
+    assert job.loop.group is None
+    assert _why(job.loop) == (f"not frozen: {key} move geometry: each step rebuilds the "
+                              "scene's acceleration structure, which a frozen function must "
+                              "not do")
+
+
+def test_frozen_off_is_the_unfrozen_loop(optimize):
+    job = Job(optimize, _cornell, _settings([RED, GREEN], iterations=2, frozen="off"))
+    assert job.loop.group is None
+    status = next(c for c in job.loop.status() if c.name == "frozen")
+    assert not status.on
+
+
+def test_a_daemon_job_runs_frozen_with_the_history_of_the_unfrozen_one(stubs):
+    scene, _, ref = cornell_with_truth(stubs, 16, 16, [])
+
+    def job(frozen: str) -> tuple[pb.Job, list[float]]:
+        spec = pb.JobSpec(scene=scene.name, iterations=6, spp=4, min_error=0, seed=3,
+                          references=[pb.Reference(blob=ref.exr_blob)],
+                          parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3)
+                                      for k in (RED, GREEN)])
+        spec.choices["frozen"] = frozen
+        name = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name
+        done = wait_state(stubs, name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+        assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+        history = stubs.jobs.GetJobHistory(pb.GetJobHistoryRequest(name=name)).iterations
+        return done, [h.loss for h in history]
+
+    (frozen, a), (unfrozen, b) = job("on"), job("off")
+    np.testing.assert_allclose(a, b, rtol=1e-4)
+    on = next(c for c in frozen.choices if c.name == "frozen")
+    assert on.on and "replayed" in on.why
+    assert not next(c for c in unfrozen.choices if c.name == "frozen").on

@@ -1,0 +1,191 @@
+"""A worker keeps the last released job's scene for the next job on it (engine/kept_scenes.py),
+in-process on MitsubaEngine: the next job compiles nothing and follows the trajectory it
+would follow alone; what a job changed in the scene (its parameters, its film's size) is put
+back; two jobs loaded at once on one scene each have their own; another scene's job drops
+the kept one."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from matoptd import settings as api  # noqa: E402
+
+RED = "red.reflectance.value"
+GREEN = "green.reflectance.value"
+XML = Path(__file__).resolve().parents[1] / "daemon" / "matoptd" / "engine" / "cornell_box.xml"
+
+
+@pytest.fixture(scope="module")
+def service():
+    mi.set_variant("llvm_ad_rgb")
+    from matoptd.engine import service
+    return service
+
+
+@pytest.fixture
+def make(service, tmp_path):
+    """An engine over blobs held here, and a job's settings on the Cornell box at ``res``
+    against a 48x24 reference (the film follows its aspect ratio: 2 res x res)."""
+    blobs: dict[str, bytes] = {}
+
+    def put(data: bytes) -> str:
+        sha = hashlib.sha256(data).hexdigest()
+        blobs[sha] = data
+        return sha
+
+    image = mi.render(mi.load_file(str(XML), resx=48, resy=24), spp=16, seed=5)
+    mi.Bitmap(image).write(str(tmp_path / "ref.exr"))
+    ref = put((tmp_path / "ref.exr").read_bytes())
+    xml = put(XML.read_bytes())
+    engine = service.MitsubaEngine(blobs.__getitem__, tmp_path / "cache")
+
+    def settings(res: int = 32, initial: bool = True, **kw) -> api.JobSettings:
+        scene = api.SceneInput.of("cornell_box.xml", {"cornell_box.xml": xml},
+                                  {"resx": str(res), "resy": str(res)}, "cornell")
+        start = api.Values([0.5, 0.5, 0.5]) if initial else None
+        return api.JobSettings(
+            scene, [api.ReferenceInput(0, ref, "ref.exr")],
+            [api.ParameterSetting(k, 0.1, 0.0, 1.0, start) for k in (RED, GREEN)],
+            iterations=20, spp=4, schedule="constant", **kw)
+
+    return engine, settings
+
+
+def _run(engine, name: str, settings, n: int = 4, release: bool = True) -> list[float]:
+    engine.start(name, settings, None)
+    losses = [engine.step(name, 1).records[0].loss for _ in range(n)]
+    if release:
+        engine.release(name)
+    return losses
+
+
+def test_a_job_run_again_takes_the_kept_scene_compiles_nothing_and_has_the_same_losses(make):
+    import drjit as dr
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    kept = engine.kept.kept
+    assert kept is not None
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # empties it
+        engine.start("b", settings(), None)
+        assert engine.runs["b"].scene is kept  # the very scene, not a new load
+        again = [engine.step("b", 1).records[0].loss for _ in range(4)]
+        compiled = [k for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and not k["cache_hit"]]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    engine.release("b")
+    assert compiled == []
+    np.testing.assert_allclose(again, first, rtol=1e-6)
+
+
+def test_what_a_job_changed_in_the_scene_is_put_back(make):
+    """A job starting from the scene's own values runs as alone after one that moved them
+    and resized the film."""
+    engine, settings = make
+    scene_values = settings(initial=False, seed=3)
+    alone = _run(engine, "alone", scene_values)
+    _run(engine, "mover", settings())  # starts at grey, moves both walls
+    params = mi.traverse(engine.kept.kept.scene)
+    assert list(params["camera.film.size"]) == [32, 32]  # as loaded; the job's was 64x32
+    assert np.allclose(np.array(params[RED]).ravel(), [0.570068, 0.0430135, 0.0443706])
+    np.testing.assert_allclose(_run(engine, "after", scene_values), alone, rtol=1e-6)
+
+
+def test_two_jobs_on_one_scene_at_once_have_their_own_scenes_and_trajectories(make):
+    engine, settings = make
+    a_alone = _run(engine, "a", settings())
+    b_alone = _run(engine, "b", settings(initial=False, seed=7))
+    engine.start("a2", settings(), None)
+    engine.start("b2", settings(initial=False, seed=7), None)
+    assert engine.runs["a2"].scene.scene is not engine.runs["b2"].scene.scene
+    a, b = [], []
+    for _ in range(4):  # in turn, as time slices would
+        a.append(engine.step("a2", 1).records[0].loss)
+        b.append(engine.step("b2", 1).records[0].loss)
+    engine.release("a2")
+    engine.release("b2")
+    np.testing.assert_allclose(a, a_alone, rtol=1e-6)
+    np.testing.assert_allclose(b, b_alone, rtol=1e-6)
+
+
+def test_a_job_on_another_scene_drops_the_kept_one(make):
+    engine, settings = make
+    _run(engine, "a", settings(32))
+    engine.start("other", settings(40), None)
+    assert engine.kept.kept is None  # none idle beside the job's own scene
+    engine.release("other")
+    assert engine.kept.kept.key[0] == settings(40).scene.key
+
+
+def test_a_texture_job_again_finds_the_texture_as_loaded(service, tmp_path):
+    """The next job on a scene whose texture a job optimized (through coarse-to-fine levels)
+    starts from the texture as loaded, and runs as the first did."""
+    from scenes import exr, textured_quad
+    texture = "quad.bsdf.reflectance.data"
+    y, x = np.mgrid[0:64, 0:64] / 63.0
+    pixels = np.stack([0.2 + 0.6 * x, 0.2 + 0.6 * y, np.full_like(x, 0.4)], -1)
+    files = {"scene.xml": textured_quad(24, filename="textures/albedo.exr").encode(),
+             "textures/albedo.exr": exr(pixels)}
+    for path, data in files.items():
+        (tmp_path / "bundle" / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "bundle" / path).write_bytes(data)
+    image = mi.render(mi.load_file(str(tmp_path / "bundle" / "scene.xml")), spp=16, seed=5)
+    mi.Bitmap(image).write(str(tmp_path / "ref.exr"))
+    files["ref.exr"] = (tmp_path / "ref.exr").read_bytes()
+    blobs = {hashlib.sha256(d).hexdigest(): d for d in files.values()}
+    sha = {p: hashlib.sha256(d).hexdigest() for p, d in files.items()}
+    scene = api.SceneInput.of("scene.xml", {p: sha[p] for p in ("scene.xml",
+                              "textures/albedo.exr")}, {}, "quad")
+    settings = api.JobSettings(
+        scene, [api.ReferenceInput(0, sha["ref.exr"], "ref.exr")],
+        [api.ParameterSetting(texture, 0.05, 0.0, 1.0, api.Values([0.5] * 64 * 64 * 3))],
+        iterations=8, spp=4, schedule="constant")
+    engine = service.MitsubaEngine(blobs.__getitem__, tmp_path / "cache")
+    first = _run(engine, "a", settings, n=6)  # through the coarse levels to the full one
+    params = mi.traverse(engine.kept.kept.scene)
+    np.testing.assert_allclose(np.array(params[texture]), pixels, atol=1e-6)
+    np.testing.assert_allclose(_run(engine, "b", settings, n=6), first, rtol=1e-6)
+
+
+def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tmp_path):
+    """One worker on one thread (its sums in one order), slices of 0.2 s: the same job twice
+    in a row, then it and another job on the same scene taking turns (each evicted and
+    loaded again from its checkpoint), all with the losses of each job alone."""
+    from matopt_api.v1 import matopt_pb2 as pb
+
+    from conftest import Daemon, Stubs, wait_iteration, wait_state
+    from test_faults import cornell_job
+
+    daemon = Daemon(tmp_path / "data", None, "--workers", "1", "--server-cores", "1",
+                    "--slice", "0.2").start()
+    stubs = Stubs(daemon.address)
+    try:
+        def losses(job: pb.Job) -> list[float]:
+            wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED,), timeout=300)
+            return [r.loss for r in stubs.jobs.GetJobHistory(
+                pb.GetJobHistoryRequest(name=job.name)).iterations]
+
+        first = cornell_job(stubs, 60, seed=7)
+        alone = losses(first)
+        other = cornell_job(stubs, 60, seed=9)  # the same scene's content, another seed
+        other_alone = losses(other)
+        again = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=first.spec))
+        np.testing.assert_allclose(losses(again), alone, rtol=1e-6)
+        a = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=first.spec))
+        b = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=other.spec))
+        wait_iteration(stubs, b.name, 1)
+        assert stubs.jobs.GetJob(pb.GetJobRequest(name=a.name)).iteration < 60  # in turn
+        np.testing.assert_allclose(losses(a), alone, rtol=1e-6)
+        np.testing.assert_allclose(losses(b), other_alone, rtol=1e-6)
+        assert len(alone) == len(other_alone) == 60
+    finally:
+        stubs.close()
+        daemon.stop()
