@@ -66,7 +66,7 @@ class Context:
         """The choices in force that map a sensor's renders or keep them (by name)."""
         loop = self._loop
         return [c.name for c in loop.active
-                if c in loop._hooks["on_images"] or c.wants_images]
+                if c in loop.hooks.by_hook["on_images"] or c.wants_images]
 
     def note(self, line: str) -> None:
         """A line for the job's notes, said during the job (reported at its end)."""

@@ -19,6 +19,8 @@ recordings are dropped and the job's notes say that it recorded again and why.
 
 from __future__ import annotations
 
+import gc
+
 import drjit as dr
 import mitsuba as mi
 
@@ -107,10 +109,18 @@ class FrozenLoss:
                 dr.clear_grad(leaf)
         refs = [ctx.references[sensor] for _, sensor in group]
         before = self.fn.n_recordings
-        total = self.fn(ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
-                        [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
-                        [r.image for r in refs], [r.weight for r in refs], ctx.spp,
-                        float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
+        # Python's collector must not run inside a recording: freeing another job's scene
+        # there enqueues a host function, which a recording refuses by aborting the process.
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            total = self.fn(ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
+                            [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
+                            [r.image for r in refs], [r.weight for r in refs], ctx.spp,
+                            float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
+        finally:
+            if collecting:
+                gc.enable()
         self.recordings += self.fn.n_recordings - before
         self.stale = True
         return total

@@ -49,17 +49,17 @@ from ..truth import parameter_error
 from . import checkpoint as codec
 from . import integrator, parameters
 from .checkpoint import CheckpointError
-from .choices import HOLD, Choice, assign_keys, build, overrides
+from .choices import HOLD, Choice, build
 from .context import Context
 from .diagnosis import Kept
 from .guards import Guards
+from .hooks import Hooks
 from .losses import LOSSES
 from .maps import Maps
 from .records import Best, ParamRecord, Progress, Step
 from .renders import Reference, Renders
 
 __all__ = ["Best", "CheckpointError", "Optimization", "Reference", "Step", "schedule_factor"]
-STEP_HOOKS = ("before_render", "on_images", "on_loss", "on_gradient")
 
 
 def schedule_factor(settings: api.JobSettings, i: int) -> float:
@@ -88,7 +88,8 @@ class Optimization:
         self.records = _records(params, settings, initial or {}, truth or {})
         params.keep([k for k in self.records])
         self.renders = Renders(scene, params, dict(sorted(references.items())), settings,
-                               self.loss, self._on_images, self._apply)
+                               self.loss, lambda s, images: self.hooks.on_images(s, images),
+                               self._apply)
         self.ctx = Context(self)
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         self.progress = Progress()
@@ -99,19 +100,11 @@ class Optimization:
         self.group = None  # a choice's stand-in for the renders and backward pass (frozen)
         saved = codec.loads(checkpoint) if checkpoint is not None else None
 
-        self.choices = choices if choices is not None else build(settings)
-        for c in self.choices:
-            self.records.update({r.key: r for r in c.variables(self.ctx)})
-        assign_keys(self.ctx, self.choices, self.records)
-        for c in self.choices:
-            state = None if saved is None else saved.choices.get(c.name, codec.ChoiceState(
-                0.0, 0.0)).state
-            self._timed(c, "setup_seconds", c.setup, self.ctx,
-                        {k: self.records[k] for k in c.keys}, state)
-        self.active = [c for c in self.choices if c.on and c.applies]
+        self.hooks = Hooks(self.ctx, choices if choices is not None else build(settings),
+                           self.records, None if saved is None else
+                           {name: c.state for name, c in saved.choices.items()})
+        self.choices, self.active = self.hooks.choices, self.hooks.active
         self.maps = Maps(self.active)
-        self._hooks = {h: [c for c in self.active if overrides(c, h)] for h in STEP_HOOKS}
-        self._wants_images = any(c.wants_images for c in self.active)
         self.opt.uniform = any(c.adam_uniform for c in self.active)
         for key, r in self.records.items():
             latent = self.maps.encode(key, r.start)
@@ -121,11 +114,9 @@ class Optimization:
             self.opt.set_learning_rate({key: r.rate})
             r.bounds, r.step_rate = self.maps.bounds(r), self.maps.rate(r)
         self._apply()
-        for c in self.active:
-            if overrides(c, "begin"):
-                begun = self._timed(c, "setup_seconds", c.begin, self.ctx)
-                if begun is not None:
-                    self.chosen.max_depth, self.chosen.depth_origin = begun.max_depth, begun.origin
+        begun = self.hooks.begin()
+        if begun is not None:
+            self.chosen.max_depth, self.chosen.depth_origin = begun.max_depth, begun.origin
         self.renders.integrator = integrator.make(self.chosen)
         self.integrator_reason = self.chosen.reason()
         self.group = next(filter(None, (c.group_loss(self.ctx) for c in self.active)), None)
@@ -173,21 +164,6 @@ class Optimization:
 
     # -- the loop ---------------------------------------------------------------------------
 
-    def _timed(self, c: Choice, clock: str, hook, *args):
-        began, out = time.perf_counter(), hook(*args)
-        setattr(c, clock, getattr(c, clock) + time.perf_counter() - began)
-        return out
-
-    def _call(self, hook: str, *args) -> list:
-        """``hook`` on every choice in force that has it, in order, each timed on its own."""
-        return [self._timed(c, "seconds", getattr(c, hook), self.ctx, *args)
-                for c in self._hooks[hook]]
-
-    def _on_images(self, sensor: int, images: list) -> list:
-        for c in self._hooks["on_images"]:
-            images = self._timed(c, "seconds", c.on_images, self.ctx, sensor, images)
-        return images
-
     def step(self) -> Step:
         start = time.perf_counter()
         p, s = self.progress, self.settings
@@ -195,7 +171,7 @@ class Optimization:
         self.spp = s.spp_at(i)
         for r in self.records.values():
             r.step_rate = self.maps.rate(r)
-        changed = {k: v for out in self._call("before_render") for k, v in out.items()}
+        changed = {k: v for out in self.hooks.call("before_render") for k, v in out.items()}
         for key, variable in changed.items():
             self.opt[key] = variable
             self.opt.set_learning_rate({key: self.records[key].step_rate})
@@ -211,14 +187,14 @@ class Optimization:
                 total = self._loss(i, [(n, sensor)], 1)
                 losses.append(float(total.array[0]))
                 if not last:
-                    self._descend(total, sum(self._call("on_loss")) / len(refs), losses[-1],
+                    self._descend(total, sum(self.hooks.call("on_loss")) / len(refs), losses[-1],
                                   i, [(n, sensor)])
             loss = float(np.mean(losses))
         else:
             total = self._loss(i, list(enumerate(refs)), len(refs))
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
-                self._descend(total, sum(self._call("on_loss")), loss, i, list(enumerate(refs)))
+                self._descend(total, sum(self.hooks.call("on_loss")), loss, i, list(enumerate(refs)))
         theta, gains = self._read_theta()
         for key, v in theta.items():
             if v.size > SMALL:
@@ -276,7 +252,7 @@ class Optimization:
 
     def _sensor_loss(self, i: int, n: int, sensor: int):
         images = self.renders.sensor_images(i, n, sensor, 0, self.spp)
-        if self._wants_images:
+        if self.hooks.wants_images:
             self.ctx.images[sensor] = [dr.detach(img) for img in images]
         return self.renders.image_loss(images, self.renders.references[sensor])
 
@@ -293,8 +269,8 @@ class Optimization:
         self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
         ctx.sensors, ctx.held = sensors, set()
-        for c in self._hooks["on_gradient"]:
-            for key, grad in self._timed(c, "seconds", c.on_gradient, ctx).items():
+        for c in self.hooks.by_hook["on_gradient"]:
+            for key, grad in self.hooks.timed(c, "seconds", c.on_gradient, ctx).items():
                 dr.set_grad(self.opt[key], 0.0 if grad is HOLD else grad)
                 if grad is HOLD:
                     ctx.held.add(key)
@@ -312,10 +288,7 @@ class Optimization:
                           also)
 
     def status(self) -> list[api.ChoiceStatus]:
-        """The choices that concern the job, on or off, with their measured cost."""
-        n = max(1, self.progress.iteration)
-        return [api.ChoiceStatus(c.name, c.on, c.why, c.seconds / n, c.setup_seconds,
-                                 c.switchable) for c in self.choices if c.applies]
+        return self.hooks.status(self.progress.iteration)
 
     # -- checkpoints ------------------------------------------------------------------------
 
