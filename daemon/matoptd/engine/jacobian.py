@@ -39,7 +39,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import covariance, parameters, split_samples
-from .losses import LOSSES
+from .rows import linearized, rows
 
 
 FORWARD_MODE = ("prb", "prb_projective", "direct_projective")  # integrators with render_forward
@@ -251,7 +251,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
                             (old * samples[k] + column * spp) / (samples[k] + spp))
         samples[todo] += spp
         draw += 2
-        fit = _linearized([_rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
+        fit = linearized([rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
                            for s, sensor in sensors.items()], job.loss)
         signal = np.diag(fit.hessian) / np.maximum(np.diag(fit.spread), 1e-300)
         short = [k for k in todo if signal[k] < SIGNAL and samples[k] < MAX_SAMPLES * job.spp]
@@ -450,64 +450,3 @@ def _channel(image: np.ndarray, index: int, packed: int, width: float) -> np.nda
     return (image if packed == 1 else image * (np.arange(3) == index)) / width
 
 
-@dataclass
-class _Rows:
-    """One sensor's pixel-channels, flattened: two estimates of J (rows x p), the same
-    weighted by the loss (K J), the render noise and the residual per row."""
-
-    ja: np.ndarray
-    jb: np.ndarray
-    ka: np.ndarray
-    kb: np.ndarray
-    weight: np.ndarray    # the loss's own weight of each row (multiscale: its full level's)
-    noise: np.ndarray
-    residual: np.ndarray
-
-
-def _rows(index: int, sensor: Sensor, renders: list[np.ndarray],
-          pair: list[list[np.ndarray | None]],
-          comps: list[_Component], job: Job, count: int) -> _Rows:
-    gain = sensor.gain if sensor.gain is not None else np.ones(3)
-    a, b = (r * gain for r in renders)
-    ref = sensor.reference.astype(np.float64)
-    weight = (np.ones_like(ref) if sensor.weight is None
-              else sensor.weight.astype(np.float64))
-    if job.clamp:  # compared in [0, 1]: a clipped pixel has no slope
-        weight = weight * ((a + b) / 2 < 1.0)
-        ref = np.clip(ref, 0.0, 1.0)
-    estimates = []
-    for n, cols in enumerate(pair):
-        image = (a, b)[n]
-        j = [col * gain if col is not None else
-             image * ((np.arange(3) == c.index) & (c.sensor == index))
-             for col, c in zip(cols, comps)]
-        estimates.append(np.stack(j, axis=-1))  # (H, W, 3, p)
-    ja, jb = estimates
-    loss = LOSSES[job.loss]
-    if loss.images is not None:  # the images as the loss compares them
-        ja, jb, a, b, ref = loss.images(ja, jb, a, b, ref, weight)
-    noise = (a - b) ** 2 / 2
-    residual = (a - ref) * (b - ref)
-    # The loss's weight of each row, as losses._mean: sum(w x) / max(sum(w), 1), mean over
-    # sensors; a loss may weigh them its own way (multiscale_mse: K = sum_l D_l^T C_l D_l).
-    c = weight / max(float(weight.sum()), 1.0) / count
-    if loss.weigh is not None:
-        ka, kb = (loss.weigh(j, weight) / count for j in (ja, jb))
-    else:
-        ka, kb = ja * c[..., None], jb * c[..., None]
-    p = ja.shape[-1]
-    flat = (lambda x: x.reshape(-1, p))
-    return _Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(), noise.ravel(),
-                 residual.ravel())
-
-
-def _linearized(rows: list[_Rows], loss: str) -> covariance.Linearized:
-    p = rows[0].ja.shape[1]
-    h, spread, q, qr = (np.zeros((p, p)) for _ in range(4))
-    k = LOSSES[loss].step_noise
-    for r in rows:
-        h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
-        spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
-        q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
-        qr += 4 * covariance.residual_noise(r.ka, r.kb, r.noise, r.residual, r.weight)
-    return covariance.Linearized(h, q, qr, spread)

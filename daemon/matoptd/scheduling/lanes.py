@@ -120,8 +120,8 @@ class Lane:
         except DiskFull:
             self.recovery.hold(w, action)
         except Exception:  # noqa: BLE001 - a lane must outlive any one job's failure
-            log.exception("%s: %s of %s failed", w.name, action.kind, action.job,
-                          extra=about(action.job, action.user))
+            job = about(action.job, action.user)
+            log.exception("%s: %s of %s failed", w.name, action.kind, action.job, extra=job)
             self._give_up(action)
         return True
 
@@ -137,8 +137,7 @@ class Lane:
                     record = self.state.record(name)
                     record.checkpoint = record.iteration
             except (UserError, WorkerLost) as exc:
-                log.error("could not checkpoint %s on shutdown: %s", name, exc,
-                          extra=about(name))
+                log.error("could not checkpoint %s on shutdown: %s", name, exc, extra=about(name))
         self.worker.stop()
 
     def _timeout(self, action: Action) -> float:
@@ -302,10 +301,9 @@ class Lane:
         self._done(action, record=record)
 
     def _finish(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
-        ending = record.ending
-        cancelled = ending.outcome is Phase.CANCELLED
-        finished = engine.finish(record.name, self.store.history(record.name), cancelled,
-                                 False)
+        ending, cancelled = record.ending, record.ending.outcome is Phase.CANCELLED
+        history = self.store.history(record.name)
+        finished = engine.finish(record.name, history, cancelled, False)
         scene = self.store.get_scene(record.owner, record.scene)
         kept = [keep_result(record.name, result, record.shapes, scene,
                             ending.images.get(result.which, []), self._put(record))
