@@ -227,9 +227,10 @@ def _series(path: np.ndarray) -> np.ndarray:
 def trade_offs(losses: list[float], trajectories: dict[str, np.ndarray],
                min_correlation: float = 0.8
                ) -> list[tuple[str, str, float, tuple[float, float]]]:
-    """(a, b, correlation, how far each wandered: the span of its smoothed mean) for pairs of parameters that both wandered over the second half of
-    the history (by more than 2% of their value, turning back at least once) in step with
-    each other while the loss stayed level: a valley the images cannot resolve. A parameter
+    """(a, b, correlation, how far each wandered: the span of its smoothed mean) for pairs of
+    parameters that both wandered over the second half of the history (by more than 2% of
+    their value, turning back at least once) in step with each other while the loss stayed
+    level: a valley the images cannot resolve. A parameter
     still heading one way is converging (or not yet done), not wandering: two of those move
     in step too, but that says nothing about the images."""
     if not _level(losses):

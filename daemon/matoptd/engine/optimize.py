@@ -194,7 +194,8 @@ class Optimization:
             total = self._loss(i, list(enumerate(refs)), len(refs))
             loss = float(total.array[0])
             if not (last or self._reached(loss)):
-                self._descend(total, sum(self.hooks.call("on_loss")), loss, i, list(enumerate(refs)))
+                self._descend(total, sum(self.hooks.call("on_loss")), loss, i,
+                              list(enumerate(refs)))
         theta, gains = self._read_theta()
         for key, v in theta.items():
             if v.size > SMALL:

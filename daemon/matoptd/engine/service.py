@@ -193,7 +193,8 @@ class MitsubaEngine:
         refs = _references(loaded, settings, self._blob_path, notes)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         try:
-            truth = {k: self._values(v, f"ground truth of '{k}'") for k, v in settings.truth.items()}
+            truth = {k: self._values(v, f"ground truth of '{k}'")
+                     for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
             opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
