@@ -50,7 +50,8 @@ MAX_COMPONENTS = 48   # "a few dozen": J costs a pass per component
 
 # A texture's or grid's directions in J, per channel: its mean level, then ramps from -1 to 1
 # along its width and its height (axes -2 and -3 of a (..., H, W, C) tensor). The ramps go
-# first when the components pass MAX_COMPONENTS or their passes the budget.
+# only when the components pass MAX_COMPONENTS: dropped for time, they would leave a scalar
+# the narrower interval of a texture held at its pattern (their passes may pass the budget).
 MODES = ("mean level", "left-right ramp", "top-bottom ramp")
 
 
@@ -219,11 +220,6 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
 
     count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
                                        comps, by_key, params))
-    if any(c.mode for c in comps) and count * cost(1) > budget / 2:
-        # the ramps' passes at 1 spp alone would pass half the budget: mean levels only
-        comps = components(quantities, sensors, smooth=False)
-        count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
-                                           comps, by_key, params))
     spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
