@@ -1,5 +1,6 @@
 """Are the standard errors calibrated? Procedural scenes with known truth, one kind of parameter
-each (reflectances, a roughness, a dielectric's eta, a medium's albedo and sigma_t): per seed,
+each (reflectances, a roughness, a dielectric's eta, a medium's albedo and sigma_t, and a
+roughness optimized beside a texture, which can take up part of what it shows): per seed,
 a reference rendered from the truth with noise of its own, a job started near the truth with
 the daemon's defaults, and for each recovered component whether the truth lies within two of
 its standard errors (on the open side for one at a bound). Calibrated, that holds about 95% of
@@ -15,17 +16,18 @@ notes flag ("still moving").
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
-from scenes import create_scene
+from scenes import camera, create_scene, exr, studio
 from stiff import glass, medium_ball, principled_ball
 
-KINDS = ("reflectance", "roughness", "eta", "medium albedo", "sigma_t")
+KINDS = ("reflectance", "roughness", "eta", "medium albedo", "sigma_t",
+         "roughness beside a texture")
 
 
 @dataclass
@@ -38,8 +40,34 @@ class Case:
     reference_spp: int = 128
     spread: float = 0.05            # start: truth * e^U(-spread, spread), clipped to the range
     res: int = 32                   # the Cornell box's film (the others' XML has its own)
+    files: dict[str, bytes] = field(default_factory=dict)  # beside the XML
+    beside: tuple[str, ...] = ()    # optimized too from the scene's values, not judged
 
 
+def textured_ball(res: int = 32) -> tuple[str, dict[str, bytes]]:
+    """A principled ball whose base colour is a 4x4 texture (a brighter and a darker half, so
+    that its left-right ramp is not flat), and its roughness; with the files it reads."""
+    texels = np.full((4, 4, 3), 0.6, dtype=np.float32)
+    texels[:, :2] = (0.7, 0.35, 0.2)
+    texels[::2, ::2] *= 0.8
+    return f"""<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+    {camera(res, "0, 0.6, 4")}
+    {studio(0.6)}
+    <shape type="sphere" id="ball">
+        <bsdf type="principled">
+            <texture type="bitmap" name="base_color">
+                <string name="filename" value="albedo.exr"/>
+                <string name="filter_type" value="nearest"/>
+            </texture>
+            <float name="roughness" value="0.3"/>
+        </bsdf>
+    </shape>
+</scene>
+""", {"albedo.exr": exr(texels)}
+
+
+TEXTURED = textured_ball(32)
 CASES = [
     Case("Cornell box walls", None, {"red.reflectance.value": "reflectance",
                                      "green.reflectance.value": "reflectance"}),
@@ -49,6 +77,8 @@ CASES = [
     Case("homogeneous medium", medium_ball(1.0, 0.8, 16, 32),
          {"cloud.interior_medium.albedo.value.value": "medium albedo",
           "cloud.interior_medium.sigma_t.value.value": "sigma_t"}),
+    Case("textured ball", TEXTURED[0], {"ball.bsdf.roughness.value": "roughness beside a texture"},
+         files=TEXTURED[1], beside=("ball.bsdf.base_color.data",)),
 ]
 
 
@@ -95,7 +125,7 @@ def scene_of(stubs, case: Case) -> pb.Scene:
     if case.xml is None:
         return stubs.scenes.CreateScene(pb.CreateSceneRequest(
             overrides={"resx": str(case.res), "resy": str(case.res)}))
-    return create_scene(stubs, {"case.xml": case.xml.encode()}, "case.xml")
+    return create_scene(stubs, {"case.xml": case.xml.encode(), **case.files}, "case.xml")
 
 
 def run(stubs, case: Case, scene: pb.Scene, seed: int) -> Run:
@@ -114,13 +144,15 @@ def run(stubs, case: Case, scene: pb.Scene, seed: int) -> Run:
         start = np.clip(truth * np.exp(rng.uniform(-case.spread, case.spread, truth.size)),
                         p.min, p.max)
         spec.parameters.add(key=key, initial_value=start.tolist())
+    for key in case.beside:
+        spec.parameters.add(key=key)
     job = mc.wait(stubs, stubs.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name)
     name = job.name
     if job.state != pb.JOB_STATE_SUCCEEDED:
         raise AssertionError(f"{case.name} seed {seed}: {job.error}")
     result = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=name, which=pb.WHICH_LAST))
     components = []
-    for p in result.parameters:
+    for p in (p for p in result.parameters if p.key in case.kinds):
         truth = listed[p.key].value
         for i, (v, e, interval) in enumerate(zip(p.value, p.standard_error, p.interval)):
             components.append(Component(case.name, case.kinds[p.key], p.key, i, truth[i], v, e,

@@ -164,25 +164,31 @@ def test_what_the_history_finds_undecided_loses_its_interval(engine):
     assert any("mean level is known" in n for n in out.notes)  # untouched
 
 
-def test_a_wander_within_the_interval_is_the_scatter_it_allows(engine):
+def test_a_wander_widens_the_interval_to_span_it(engine):
     """Drifting on gradients of no consistent sign, or two values wandering in step at a
-    level loss, says the images did not steer them: over no more than their interval's
-    width (four standard errors), that is the scatter their intervals allow (the verdicts
-    stand, the note says so); further, for either of a pair, neither is determined."""
+    level loss, says the images did not steer them: the result's interval spans that
+    scatter (the standard error at least the wander over four), and the note says so; where
+    that interval would be too wide to say anything (the wander's limit), or for either of
+    a pair, neither is determined."""
     from matoptd.engine import diagnosis, verdicts
     note = "glass.roughness drifted (0.13 -> 0.14 over its last 20 iterations) on noise"
-    within = "glass.roughness drifted by ...: within its interval's width"
+    within = "glass.roughness drifted by ...: its interval is at least as wide"
     why = "it drifted on gradients of no consistent sign"
 
-    def judged(moved: float) -> verdicts.Verdicts:
+    def judged(moved: float, limit: float = np.inf) -> verdicts.Verdicts:
         return verdicts.reconcile(_estimate(), diagnosis.Diagnosis(
             [note], {"glass.roughness": why},
-            {"glass.roughness": diagnosis.Wander(np.array([moved]), note, within)}), {})
+            {"glass.roughness": diagnosis.Wander(np.array([moved]), note, within, limit)}), {})
 
-    covered = judged(0.015)  # standard error 0.0092
+    covered = judged(0.015)  # standard error 0.0092: its interval spans the wander already
     assert covered.errors["glass.roughness"].reading == ["two_sided"]
+    assert covered.errors["glass.roughness"].error[0] == pytest.approx(0.0092)
     assert note not in covered.notes and within in covered.notes
-    beyond = judged(0.05)
+    wider = judged(0.05)
+    assert wider.errors["glass.roughness"].reading == ["two_sided"]
+    assert wider.errors["glass.roughness"].error[0] == pytest.approx(0.0125)
+    assert within in wider.notes
+    beyond = judged(0.05, limit=0.01)
     assert beyond.errors["glass.roughness"].reading == ["not_determined"]
     assert beyond.errors["glass.roughness"].reason == [why] and note in beyond.notes
 
@@ -193,15 +199,26 @@ def test_a_wander_within_the_interval_is_the_scatter_it_allows(engine):
         return verdicts.reconcile(_estimate(), diagnosis.Diagnosis(
             [pair], {"glass.roughness": "it trades off with glass.eta at a level loss",
                      "glass.eta": "it trades off with glass.roughness at a level loss"},
-            {"glass.roughness": diagnosis.Wander(np.array([0.01]), pair, both),
-             "glass.eta": diagnosis.Wander(np.array([eta_moved]), pair, both)}), {})
+            {"glass.roughness": diagnosis.Wander(np.array([0.01]), pair, both, 0.1),
+             "glass.eta": diagnosis.Wander(np.array([eta_moved]), pair, both, 0.1)}), {})
 
     assert paired(0.15).errors["glass.eta"].reading == ["two_sided"]  # 4 x 0.039
-    assert paired(0.15).notes[0] == both
-    split = paired(0.2)
+    assert paired(0.3).errors["glass.eta"].error[0] == pytest.approx(0.075)
+    assert paired(0.3).notes[0] == both
+    split = paired(0.5)  # 0.125 > its limit
     assert [split.errors[k].reading for k in ("glass.roughness", "glass.eta")] == [
         ["not_determined"], ["not_determined"]]
     assert split.notes[0] == pair
+
+
+def test_the_widest_interval_that_says_something():
+    """A quarter of the range; in log space of the log-range times the value; unbounded, a
+    quarter of the value (log) or 0.25 (linear)."""
+    from matoptd.engine.diagnosis import Kept, widest
+    assert widest(Kept(0.0, 1.0), np.array([0.5, 0.9])) == pytest.approx([0.25, 0.25])
+    assert widest(Kept(0.0, np.inf, log=True), np.array([2.0])) == pytest.approx([0.5])
+    assert widest(Kept(0.0, 1.0, 0.001, True), np.array([0.3])) == pytest.approx(
+        [0.25 * np.log(1000) * 0.3])
 
 
 def test_an_undecided_value_without_a_standard_error_still_gets_its_verdict(engine):

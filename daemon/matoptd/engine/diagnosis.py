@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -24,12 +25,15 @@ class Kept:
 class Wander:
     """How far a parameter wandered where the history found it undecided by its wandering
     (a drift on noise, two parameters moving in step at a level loss), on the value's scale,
-    the note that says so, and what that note becomes where the standard errors cover the
-    wander: then it is the scatter the interval allows, not a contradiction of it."""
+    the note that says so, and what that note becomes where its interval is widened to cover
+    the wander: then it is scatter the result's interval includes, not a contradiction of it.
+    ``limit``: the widest standard error that still says something of the value (wider, it
+    is not determined)."""
 
     moved: np.ndarray
     note: str
     within: str
+    limit: np.ndarray | float = np.inf
 
 
 @dataclass
@@ -91,8 +95,8 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                 out.undecided[key] = "it drifted on gradients of no consistent sign"
                 out.wander[key] = Wander(moved, notes[-1], (
                     f"{key} drifted by {_short(moved)} over its last {n} iterations on "
-                    "gradients of no consistent sign: within its interval's width, the scatter "
-                    "that interval allows"))
+                    "gradients of no consistent sign: its interval is at least as wide, so "
+                    "that it includes this scatter"))
         else:
             notes.append(f"{key} was still moving when the job ended ({drift}): it has not "
                          "converged; more iterations, or a restart from this job's result, "
@@ -110,7 +114,23 @@ def diagnose(settings: dict[str, Kept], values: dict[str, np.ndarray], losses: l
                      "zeroed, and those components kept their values")
     if skipped_steps:
         notes.append(f"{skipped_steps} step(s) were skipped: the loss was NaN/Inf")
+    for key, w in out.wander.items():
+        if key in settings and key in values:
+            out.wander[key] = replace(w, limit=widest(settings[key], values[key]))
     return out
+
+
+def widest(kept: Kept, value: np.ndarray) -> np.ndarray:
+    """Per component, the widest standard error with which an interval still says something
+    of a value: a quarter of its range (in log space of its log-range, times the value; a
+    quarter of the value where that range is unbounded)."""
+    v = np.abs(np.asarray(value, dtype=np.float64))
+    lower = max(kept.lo, kept.floor)
+    if kept.log:
+        span = math.log(kept.hi / lower) if lower > 0 and math.isfinite(kept.hi) else 1.0
+        return 0.25 * span * v
+    span = kept.hi - kept.lo
+    return np.full(v.shape, 0.25 * (span if math.isfinite(span) else 1.0))
 
 
 def floor_note(key: str, floor: float, gradients: list[np.ndarray]) -> str:
@@ -159,8 +179,8 @@ def undecided(losses: list[float], trajectories: dict[str, np.ndarray],
         notes.append(f"{a} and {b} trade off: over the last iterations one {how} (correlation "
                      f"{r:+.2f}) while the loss stays level, so the images do not tell them "
                      f"apart; what would decide them: {DECIDERS}")
-        within = (f"{a} and {b} wandered in step at a level loss (correlation {r:+.2f}), "
-                  "each within its interval's width: the scatter their intervals allow")
+        within = (f"{a} and {b} wandered in step at a level loss (correlation {r:+.2f}): "
+                  "their intervals are at least as wide, so that they include this scatter")
         for one, other, span in ((a, b, spans[0]), (b, a, spans[1])):
             if one not in found:
                 found[one] = f"it trades off with {other} at a level loss"

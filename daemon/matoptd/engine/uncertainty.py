@@ -20,7 +20,7 @@ import numpy as np
 from .. import engine_api as api
 from ..range_notes import at_bound
 from . import covariance, parameters
-from .diagnosis import DECIDER, DECIDERS
+from .diagnosis import DECIDER, DECIDERS, Kept, widest
 from .jacobian import (BUDGET, MAX_COMPONENTS, Job, Linearization, Quantity, Sensor, _Component,
                        _latent_step, basis, linearize)
 from .losses import LOSSES
@@ -147,13 +147,12 @@ def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[i
         value = q.value.astype(np.float64)
         error = np.where(ok, latent * (value if q.log else 1.0), np.inf)
         reason = list(why[start - n:start])
-        lower = np.maximum(q.lo, q.floor)
-        span = (np.log(q.hi / lower) if q.log and lower > 0 and math.isfinite(q.hi)
-                else q.hi - q.lo if not q.log else math.inf)
-        wide = ok & (latent > 0.25 * (span if math.isfinite(span) else 1.0))
+        lower = max(q.lo, q.floor)
+        bounded = math.isfinite(q.hi - q.lo) and (lower > 0 or not q.log)
+        wide = ok & (error > widest(Kept(q.lo, q.hi, q.floor, q.log), value))
         for c in np.flatnonzero(wide):
             what = (f"more than a quarter of its range [{q.lo:g}, {q.hi:g}]"
-                    if math.isfinite(span) else "more than a quarter of its value")
+                    if bounded else "more than a quarter of its value")
             about.setdefault(q.key, []).append(
                 f"{_name(q, c)}: standard error {error[c]:.3g}, {what}: these images do not "
                 f"decide it; what would: {DECIDER}")
