@@ -28,6 +28,8 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.ad.integrators.common import ADIntegrator, RBIntegrator
 
+from . import frozen
+
 
 def shares_primal(integrator: mi.Integrator) -> bool:
     """Whether the integrator's forward mode is RBIntegrator's (the projective integrators add
@@ -47,6 +49,9 @@ class Traced:
     first: Any        # mi.Bool: the lane is one of the first s samples of its pixel
     radiance: Any     # the primal's L, which the forward pass reads (state_in)
     valid: Any
+    sensor: int = 0   # what a frozen pass traces again (Frozen.trace; the rest None)
+    spp: int = 0
+    seed: int = 0
 
 
 @functools.cache
@@ -54,9 +59,9 @@ def _independent() -> mi.Sampler:
     return mi.load_dict({"type": "independent"})
 
 
-def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
-          seed: int) -> Traced:
-    """The rays and primal pass of 2 * ``spp`` samples per pixel, evaluated once."""
+def _rays(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int, seed):
+    """The film, the sampler as the rays leave it, the rays, their weights and film positions,
+    and which lanes are estimate A, of 2 * ``spp`` samples per pixel."""
     camera = scene.sensors()[sensor]
     film = camera.film()
     total = 2 * spp
@@ -69,14 +74,29 @@ def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
     lanes = int(dr.prod(size)) * total
     sampler.seed(seed, lanes)
     film.prepare(integrator.aov_names())
+    ray, weight, pos = integrator.sample_rays(scene, camera, sampler)
+    # opaque: literals would make each spp's primal kernel a kernel of its own to compile
+    first = (dr.arange(mi.UInt32, lanes) % dr.opaque(mi.UInt32, total)
+             < dr.opaque(mi.UInt32, spp))
+    return film, sampler, ray, weight, pos, first
+
+
+def _sample(scene: mi.Scene, integrator: mi.Integrator, sampler, ray, radiance=None):
+    """The primal pass (``radiance`` None) or the forward pass that replays it: L or dL, and
+    which lanes are valid."""
+    value, valid, _, _ = integrator.sample(
+        mode=dr.ADMode.Primal if radiance is None else dr.ADMode.Forward, scene=scene,
+        sampler=sampler.clone(), ray=ray, depth=mi.UInt32(0), δL=None, δaovs=None,
+        state_in=radiance, active=mi.Bool(True))
+    return value, valid
+
+
+def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
+          seed: int) -> Traced:
+    """The rays and primal pass of 2 * ``spp`` samples per pixel, evaluated once."""
     with dr.suspend_grad():
-        ray, weight, pos = integrator.sample_rays(scene, camera, sampler)
-        radiance, valid, _, _ = integrator.sample(
-            mode=dr.ADMode.Primal, scene=scene, sampler=sampler.clone(), ray=ray,
-            depth=mi.UInt32(0), δL=None, state_in=None, active=mi.Bool(True))
-        # opaque: literals would make each spp's primal kernel a kernel of its own to compile
-        first = (dr.arange(mi.UInt32, lanes) % dr.opaque(mi.UInt32, total)
-                 < dr.opaque(mi.UInt32, spp))
+        film, sampler, ray, weight, pos, first = _rays(scene, integrator, sensor, spp, seed)
+        radiance, valid = _sample(scene, integrator, sampler, ray)
         dr.eval(ray, weight, pos, radiance, valid, first)
     return Traced(film, sampler, ray, weight, pos, first, radiance, valid)
 
@@ -84,7 +104,8 @@ def trace(scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
 def primal(t: Traced, integrator: mi.Integrator) -> tuple[np.ndarray, np.ndarray]:
     """The two renders (H, W, 3) of the traced primal pass."""
     with dr.suspend_grad():
-        return _split(t, integrator, t.radiance, t.valid)
+        return _arrays(_split(t.film, t.first, t.pos, t.weight, t.ray, integrator, t.radiance,
+                              t.valid))
 
 
 def forward(t: Traced, scene: mi.Scene, integrator: mi.Integrator
@@ -93,32 +114,100 @@ def forward(t: Traced, scene: mi.Scene, integrator: mi.Integrator
     set on the scene's parameters (dr.set_grad and a forward traversal, as for
     ``render_forward``), replaying the traced samples."""
     with dr.suspend_grad():
-        tangent, valid, _, _ = integrator.sample(
-            mode=dr.ADMode.Forward, scene=scene, sampler=t.sampler.clone(), ray=t.ray,
-            depth=mi.UInt32(0), δL=None, δaovs=None, state_in=t.radiance,
-            active=mi.Bool(True))
-        return _split(t, integrator, tangent, valid)
+        tangent, valid = _sample(scene, integrator, t.sampler, t.ray, t.radiance)
+        return _arrays(_split(t.film, t.first, t.pos, t.weight, t.ray, integrator, tangent,
+                              valid))
 
 
-def _split(t: Traced, integrator: mi.Integrator, value, valid
-           ) -> tuple[np.ndarray, np.ndarray]:
+class Frozen:
+    """The same passes as frozen functions (``dr.freeze``), recorded once per sensor and spp
+    and replayed for every seed and tangent: J's passes are mostly Python tracing the
+    integrator on small images. What a replay must see fresh enters as an argument: the seed
+    (an opaque mi.UInt32: a Python int is part of a recording's key), the primal's radiance,
+    the leaves and their tangents (set on the leaves inside, where the forward pass begins).
+    The rays are traced again inside each pass rather than passed in (a film or a sampler
+    cannot be a frozen function's output); they are a small part of a pass."""
+
+    def __init__(self) -> None:
+        self._primal = dr.freeze(_primal_pass, warn_after=1000)
+        self._radiance = dr.freeze(_radiance_pass, warn_after=1000)
+        self._forward = dr.freeze(_forward_pass, warn_after=1000)
+
+    @property
+    def recordings(self) -> int:
+        return sum(f.n_recordings for f in (self._primal, self._radiance, self._forward))
+
+    def trace(self, scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
+              seed: int) -> Traced:
+        """As ``trace``: what a forward pass replays (its radiance and seed)."""
+        radiance = frozen.call(self._radiance, scene, integrator, sensor, spp, _opaque(seed))
+        return Traced(None, None, None, None, None, None, radiance, None, sensor, spp, seed)
+
+    def primal(self, scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
+               seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """As ``primal(trace(...))``: the two renders."""
+        return _arrays(frozen.call(self._primal, scene, integrator, sensor, spp,
+                                   _opaque(seed)))
+
+    def forward(self, t: Traced, scene: mi.Scene, params: mi.SceneParameters,
+                integrator: mi.Integrator, leaves: list[str], tangents: list
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """As ``forward``, the tangents (one per key of ``leaves``, each a leaf of the scene's
+        ``params``) set inside."""
+        return _arrays(frozen.call(self._forward, scene, params, integrator, t.sensor, t.spp,
+                                   _opaque(t.seed), t.radiance, leaves, tangents))
+
+
+def _opaque(seed: int):
+    return dr.opaque(mi.UInt32, seed)
+
+
+def _radiance_pass(scene, integrator, sensor, spp, seed):
+    with dr.suspend_grad():
+        _, sampler, ray, _, _, _ = _rays(scene, integrator, sensor, spp, seed)
+        return _sample(scene, integrator, sampler, ray)[0]
+
+
+def _primal_pass(scene, integrator, sensor, spp, seed):
+    with dr.suspend_grad():
+        film, sampler, ray, weight, pos, first = _rays(scene, integrator, sensor, spp, seed)
+        radiance, valid = _sample(scene, integrator, sampler, ray)
+        return _split(film, first, pos, weight, ray, integrator, radiance, valid)
+
+
+def _forward_pass(scene, params, integrator, sensor, spp, seed, radiance, leaves, tangents):
+    for key, tangent in zip(leaves, tangents):
+        dr.set_grad(params[key], tangent)
+        dr.enqueue(dr.ADMode.Forward, params[key])
+    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+    with dr.suspend_grad():
+        film, sampler, ray, weight, pos, first = _rays(scene, integrator, sensor, spp, seed)
+        tangent, valid = _sample(scene, integrator, sampler, ray, radiance)
+        return _split(film, first, pos, weight, ray, integrator, tangent, valid)
+
+
+def _arrays(images) -> tuple[np.ndarray, np.ndarray]:
+    return tuple(np.array(image, dtype=np.float64)[..., :3] for image in images)
+
+
+def _split(film, first, pos, weight, ray, integrator: mi.Integrator, value, valid) -> list:
     images = []
-    value = value * t.weight
-    plain = mi.is_rgb and not mi.has_flag(t.film.flags(), mi.FilmFlags.Special)
-    for lanes in (t.first, ~t.first):
-        t.film.prepare(integrator.aov_names())  # a fresh film for each estimate
-        block = t.film.create_block()
+    value = value * weight
+    plain = mi.is_rgb and not mi.has_flag(film.flags(), mi.FilmFlags.Special)
+    for lanes in (first, ~first):
+        film.prepare(integrator.aov_names())  # a fresh film for each estimate
+        block = film.create_block()
         block.set_coalesce(False)  # a lane's neighbours may go to the other film
         if plain:  # RGB channels, [alpha,] weight, as _splat_to_block puts them
             alpha = [dr.select(valid, mi.Float(1), mi.Float(0))] if mi.has_flag(
-                t.film.flags(), mi.FilmFlags.Alpha) else []
-            block.put(t.pos, [value.x, value.y, value.z, *alpha, mi.Float(1)], active=lanes)
+                film.flags(), mi.FilmFlags.Alpha) else []
+            block.put(pos, [value.x, value.y, value.z, *alpha, mi.Float(1)], active=lanes)
         else:  # the other lanes put with weight 0: the same image, at twice the splats
             share = dr.select(lanes, mi.Float(1), mi.Float(0))
-            ADIntegrator._splat_to_block(block, t.film, t.pos, value=value * share,
+            ADIntegrator._splat_to_block(block, film, pos, value=value * share,
                                          weight=share, alpha=dr.select(valid, share, 0),
-                                         aovs=[], wavelengths=t.ray.wavelengths)
-        t.film.put_block(block)
-        images.append(t.film.develop())  # reads this film's storage, not the next one's
+                                         aovs=[], wavelengths=ray.wavelengths)
+        film.put_block(block)
+        images.append(film.develop())  # reads this film's storage, not the next one's
     dr.eval(*images)  # both in one launch
-    return tuple(np.array(image, dtype=np.float64)[..., :3] for image in images)
+    return images
