@@ -15,6 +15,10 @@ tangent of a round, so it runs once, and each tangent then costs one forward pas
 Its samples come from an independent sampler, whatever the scene's: the two halves of a
 stratified sampler's samples in a pixel are negatively correlated, and a product across A and
 B would then underestimate J^T J.
+
+``Frozen`` holds the same passes as frozen functions (``dr.freeze``): once a job's own
+iterations replay, Python tracing the integrator pass after pass was most of J's time on
+small images.
 """
 
 from __future__ import annotations
@@ -129,13 +133,23 @@ class Frozen:
     cannot be a frozen function's output); they are a small part of a pass."""
 
     def __init__(self) -> None:
-        self._primal = dr.freeze(_primal_pass, warn_after=1000)
-        self._radiance = dr.freeze(_radiance_pass, warn_after=1000)
-        self._forward = dr.freeze(_forward_pass, warn_after=1000)
+        # auto_opaque off: every value that changes from pass to pass is opaque already, and
+        # Dr.Jit would otherwise record each function twice to find that out
+        self._primal, self._radiance, self._inside, self._forward, self._render = (
+            dr.freeze(f, warn_after=1000, auto_opaque=False)
+            for f in (_primal_pass, _radiance_pass, _inside_pass, _forward_pass, _render_pass))
+        self.inside = True  # the tangents set inside the forward pass (until that fails)
 
     @property
     def recordings(self) -> int:
-        return sum(f.n_recordings for f in (self._primal, self._radiance, self._forward))
+        return sum(f.n_recordings for f in (self._primal, self._radiance, self._inside,
+                                            self._forward, self._render))
+
+    def render(self, scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
+               sensor: int, spp: int, seed: int) -> np.ndarray:
+        """``mi.render`` (H, W, 3), detached."""
+        return _arrays([frozen.call(self._render, scene, params, integrator, sensor, spp,
+                                    _opaque(seed))])[0]
 
     def trace(self, scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
               seed: int) -> Traced:
@@ -150,16 +164,35 @@ class Frozen:
                                    _opaque(seed)))
 
     def forward(self, t: Traced, scene: mi.Scene, params: mi.SceneParameters,
-                integrator: mi.Integrator, leaves: list[str], tangents: list
+                integrator: mi.Integrator, leaves: list[str], directions: list
                 ) -> tuple[np.ndarray, np.ndarray]:
-        """As ``forward``, the tangents (one per key of ``leaves``, each a leaf of the scene's
-        ``params``) set inside."""
-        return _arrays(frozen.call(self._forward, scene, params, integrator, t.sensor, t.spp,
-                                   _opaque(t.seed), t.radiance, leaves, tangents))
+        """As ``forward`` along ``directions``, the tangents of the scene's ``params``
+        ``leaves`` (keys), set inside the recording, so that its key stays that of the first
+        pass. Where the plugins derive values from a leaf at update() (a texture's data), the
+        edges from it lie outside the recording, which may not follow them: the tangents are
+        then carried to those values outside, and the pass replays what they hold."""
+        args = (integrator, t.sensor, t.spp, _opaque(t.seed), t.radiance)
+        if self.inside:
+            try:
+                return _arrays(frozen.call(self._inside, scene, params, *args, leaves,
+                                           directions))
+            except RuntimeError as exc:
+                while exc.__cause__ is not None:
+                    exc = exc.__cause__
+                if "outside this scope" not in str(exc):
+                    raise
+                self.inside = False
+        tangents([params[key] for key in leaves], directions)
+        return _arrays(frozen.call(self._forward, scene, *args))
 
 
 def _opaque(seed: int):
     return dr.opaque(mi.UInt32, seed)
+
+
+def _render_pass(scene, params, integrator, sensor, spp, seed):
+    with dr.suspend_grad():
+        return mi.render(scene, params, sensor=sensor, spp=spp, integrator=integrator, seed=seed)
 
 
 def _radiance_pass(scene, integrator, sensor, spp, seed):
@@ -175,11 +208,21 @@ def _primal_pass(scene, integrator, sensor, spp, seed):
         return _split(film, first, pos, weight, ray, integrator, radiance, valid)
 
 
-def _forward_pass(scene, params, integrator, sensor, spp, seed, radiance, leaves, tangents):
-    for key, tangent in zip(leaves, tangents):
-        dr.set_grad(params[key], tangent)
-        dr.enqueue(dr.ADMode.Forward, params[key])
+def tangents(leaves: list, directions: list) -> None:
+    """Each leaf's tangent set and carried forward to what depends on it (a forward pass's
+    start, as for ``render_forward``)."""
+    for leaf, direction in zip(leaves, directions):
+        dr.set_grad(leaf, direction)
+        dr.enqueue(dr.ADMode.Forward, leaf)
     dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
+
+
+def _inside_pass(scene, params, integrator, sensor, spp, seed, radiance, leaves, directions):
+    tangents([params[key] for key in leaves], directions)
+    return _forward_pass(scene, integrator, sensor, spp, seed, radiance)
+
+
+def _forward_pass(scene, integrator, sensor, spp, seed, radiance):
     with dr.suspend_grad():
         film, sampler, ray, weight, pos, first = _rays(scene, integrator, sensor, spp, seed)
         tangent, valid = _sample(scene, integrator, sampler, ray, radiance)
