@@ -179,7 +179,7 @@ class Frozen:
             except RuntimeError as exc:
                 while exc.__cause__ is not None:
                     exc = exc.__cause__
-                if "outside this scope" not in str(exc):
+                if "lies outside" not in str(exc):  # an edge made before the recording
                     raise
                 self.inside = False
         tangents([params[key] for key in leaves], directions)
