@@ -168,6 +168,7 @@ def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
     (plain, plain_se), (frozen, frozen_se) = out[False], out[True]
     assert len(plain.components) == 3 + 9 + 1 and plain.notes == []
     assert frozen.notes and frozen.notes[0].startswith("standard errors: J's passes frozen")
+    assert "carried outside" in frozen.notes[0]  # the texture's data: derived at update()
     for name in ("hessian", "noise", "reference", "spread"):
         a, b = getattr(plain.fit, name), getattr(frozen.fit, name)
         assert np.abs(a).max() > 0
