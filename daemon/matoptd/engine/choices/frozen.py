@@ -39,7 +39,8 @@ class Frozen(Choice):
     def _say(self) -> None:
         self.why = (f"not frozen: {self.reason}" if self.reason else
                     "each sensor group's render, loss and backward pass recorded once (and "
-                    "again when the spp, integrator or film changes) and replayed: no Python "
+                    "again when the spp, integrator or film changes) and replayed, as are "
+                    "eta's difference renders and the standard errors' passes: no Python "
                     "tracing per iteration")
 
     def group_loss(self, ctx):
