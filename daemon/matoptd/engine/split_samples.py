@@ -135,21 +135,15 @@ class Frozen:
     def __init__(self) -> None:
         # auto_opaque off: every value that changes from pass to pass is opaque already, and
         # Dr.Jit would otherwise record each function twice to find that out
-        self._primal, self._radiance, self._inside, self._forward, self._render = (
+        self._primal, self._radiance, self._inside, self._forward = (
             dr.freeze(f, warn_after=1000, auto_opaque=False)
-            for f in (_primal_pass, _radiance_pass, _inside_pass, _forward_pass, _render_pass))
+            for f in (_primal_pass, _radiance_pass, _inside_pass, _forward_pass))
         self.inside = True  # the tangents set inside the forward pass (until that fails)
 
     @property
     def recordings(self) -> int:
         return sum(f.n_recordings for f in (self._primal, self._radiance, self._inside,
-                                            self._forward, self._render))
-
-    def render(self, scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
-               sensor: int, spp: int, seed: int) -> np.ndarray:
-        """``mi.render`` (H, W, 3), detached."""
-        return _arrays([frozen.call(self._render, scene, params, integrator, sensor, spp,
-                                    _opaque(seed))])[0]
+                                            self._forward))
 
     def trace(self, scene: mi.Scene, integrator: mi.Integrator, sensor: int, spp: int,
               seed: int) -> Traced:
@@ -188,11 +182,6 @@ class Frozen:
 
 def _opaque(seed: int):
     return dr.opaque(mi.UInt32, seed)
-
-
-def _render_pass(scene, params, integrator, sensor, spp, seed):
-    with dr.suspend_grad():
-        return mi.render(scene, params, sensor=sensor, spp=spp, integrator=integrator, seed=seed)
 
 
 def _radiance_pass(scene, integrator, sensor, spp, seed):
