@@ -106,9 +106,11 @@ def _procedural(client, seeds: int) -> tuple[list[cal.Component], list[tuple], l
     return components, costs, targets
 
 
-def _balls_cost(clients: list, res_x: int, res_y: int, seeds: int) -> list[list[float]]:
-    """The estimate's share of each job's time, per daemon of ``clients``: the same jobs on
-    each, in turns (the order rotated from seed to seed)."""
+def _balls_cost(clients: list, res_x: int, res_y: int, seeds: int
+                ) -> list[list[tuple[int, float, float]]]:
+    """Each job's (components, estimate seconds, its percent of the job's optimizing time),
+    per daemon of ``clients``: the same jobs on each, in turns (the order rotated from seed
+    to seed)."""
     runs = []
     for client in clients:
         scene = create_scene(client, {"balls.xml": balls(res_x, res_y).encode()}, "balls.xml")
@@ -120,7 +122,7 @@ def _balls_cost(clients: list, res_x: int, res_y: int, seeds: int) -> list[list[
         ref = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128,
                                                               sensors=[0], seed=5)).images[0]
         runs.append((client, scene, listed, keys, ref))
-    shares: list[list[float]] = [[] for _ in clients]
+    costs: list[list[tuple[int, float, float]]] = [[] for _ in clients]
     for seed in range(seeds):
         for n in [*range(seed % len(clients), len(clients)), *range(seed % len(clients))]:
             client, scene, listed, keys, ref = runs[n]
@@ -132,8 +134,8 @@ def _balls_cost(clients: list, res_x: int, res_y: int, seeds: int) -> list[list[
             job = _wait(client, client.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name)
             cost = _cost(job)
             if cost:
-                shares[n].append(cost[2])
-    return shares
+                costs[n].append(cost)
+    return costs
 
 
 def _wait(client, name: str) -> pb.Job:
@@ -235,7 +237,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         lines.append(f"| {name} | cost | {statistics.median(share):.0f}% of the job's time "
                      f"(median; {min(share):.0f}-{max(share):.0f}%) | | |")
     for label, (x, y) in (("32x32", (32, 32)), ("128x96", (128, 96))):
-        shares = _balls_cost([client], x, y, 1 if settings.quick else COST_SEEDS)[0]
+        shares = [c[2] for c in _balls_cost([client], x, y,
+                                            1 if settings.quick else COST_SEEDS)[0]]
         if shares:
             median = statistics.median(shares)
             lines.append(f"| 16 scalars, {label} | cost | {median:.0f}% of the job's time "
@@ -271,13 +274,16 @@ def cost_against(before: Path, seeds: int = COST_SEEDS) -> None:
     with common.daemon(work, "after") as after, common.daemon(work, "before", env=env) as old:
         for label, (x, y) in (("32x32", (32, 32)), ("128x96", (128, 96))):
             now, then = _balls_cost([after.client, old.client], x, y, seeds)
-            print(f"16 scalars, {label}: {_median(now)} of the job's time here, "
-                  f"{_median(then)} at {before}")
+            print(f"16 scalars, {label}: {_median(now)} here, {_median(then)} at {before}",
+                  flush=True)
 
 
-def _median(shares: list[float]) -> str:
-    return (f"{statistics.median(shares):.0f}% (median of {len(shares)}; "
-            f"{min(shares):.0f}-{max(shares):.0f}%)" if shares else "none")
+def _median(costs: list[tuple[int, float, float]]) -> str:
+    if not costs:
+        return "none"
+    shares, seconds = [c[2] for c in costs], [c[1] for c in costs]
+    return (f"{statistics.median(shares):.0f}% of the job's time (median of {len(shares)}; "
+            f"{min(shares):.0f}-{max(shares):.0f}%), {statistics.median(seconds):.2g} s")
 
 
 if __name__ == "__main__":
