@@ -9,7 +9,9 @@
 2. Cost: the estimate's time against the job's optimizing time (the job's note), on a scene
    of 16 scalar components (four principled balls: base colour and roughness each) at 32 px
    and at 128x96, 5 jobs each (median and range). Target: at most 10% (CPU; the GPU's
-   figure is owed).
+   figure is owed). ``python bench/calibration.py --cost-against DIR`` runs this part alone,
+   beside a daemon running another checkout's code (DIR), their jobs in turns: a change's
+   before and after in one run.
 3. The thesis's Table 2 and Table 4 scenes themselves (``--thesis-repo``, default
    /work/thesis-repo; skipped when absent), 128x96, 100 iterations, started where the thesis
    started, 3 seeds: coverage per kind, the estimate's cost and the notes on what the images
@@ -104,26 +106,36 @@ def _procedural(client, seeds: int) -> tuple[list[cal.Component], list[tuple], l
     return components, costs, targets
 
 
-def _balls_cost(client, res_x: int, res_y: int, seeds: int) -> list[float]:
-    scene = create_scene(client, {"balls.xml": balls(res_x, res_y).encode()}, "balls.xml")
-    listed = {p.key: p for p in client.scenes.ListSceneParameters(
-        pb.ListSceneParametersRequest(name=scene.name)).parameters}
-    keys = [k for k in listed if k.startswith("ball") and
-            (k.endswith("base_color.value") or k.endswith("roughness.value"))]
-    assert sum(len(listed[k].value) for k in keys) == 16, keys
-    ref = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128,
-                                                          sensors=[0], seed=5)).images[0]
-    shares = []
+def _balls_cost(clients: list, res_x: int, res_y: int, seeds: int
+                ) -> list[list[tuple[int, float, float]]]:
+    """Each job's (components, estimate seconds, its percent of the job's optimizing time),
+    per daemon of ``clients``: the same jobs on each, in turns (the order rotated from seed
+    to seed)."""
+    runs = []
+    for client in clients:
+        scene = create_scene(client, {"balls.xml": balls(res_x, res_y).encode()}, "balls.xml")
+        listed = {p.key: p for p in client.scenes.ListSceneParameters(
+            pb.ListSceneParametersRequest(name=scene.name)).parameters}
+        keys = [k for k in listed if k.startswith("ball") and
+                (k.endswith("base_color.value") or k.endswith("roughness.value"))]
+        assert sum(len(listed[k].value) for k in keys) == 16, keys
+        ref = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128,
+                                                              sensors=[0], seed=5)).images[0]
+        runs.append((client, scene, listed, keys, ref))
+    costs: list[list[tuple[int, float, float]]] = [[] for _ in clients]
     for seed in range(seeds):
-        spec = pb.JobSpec(scene=scene.name, iterations=100, seed=seed, min_error=0,
-                          references=[pb.Reference(blob=ref.exr_blob)])
-        for k in keys:
-            spec.parameters.add(key=k, initial_value=[min(0.9, 1.1 * v) for v in listed[k].value])
-        job = _wait(client, client.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name)
-        cost = _cost(job)
-        if cost:
-            shares.append(cost[2])
-    return shares
+        for n in [*range(seed % len(clients), len(clients)), *range(seed % len(clients))]:
+            client, scene, listed, keys, ref = runs[n]
+            spec = pb.JobSpec(scene=scene.name, iterations=100, seed=seed, min_error=0,
+                              references=[pb.Reference(blob=ref.exr_blob)])
+            for k in keys:
+                spec.parameters.add(key=k, initial_value=[min(0.9, 1.1 * v)
+                                                          for v in listed[k].value])
+            job = _wait(client, client.jobs.CreateJob(pb.CreateJobRequest(spec=spec)).name)
+            cost = _cost(job)
+            if cost:
+                costs[n].append(cost)
+    return costs
 
 
 def _wait(client, name: str) -> pb.Job:
@@ -225,7 +237,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         lines.append(f"| {name} | cost | {statistics.median(share):.0f}% of the job's time "
                      f"(median; {min(share):.0f}-{max(share):.0f}%) | | |")
     for label, (x, y) in (("32x32", (32, 32)), ("128x96", (128, 96))):
-        shares = _balls_cost(client, x, y, 1 if settings.quick else COST_SEEDS)
+        shares = [c[2] for c in _balls_cost([client], x, y,
+                                            1 if settings.quick else COST_SEEDS)[0]]
         if shares:
             median = statistics.median(shares)
             lines.append(f"| 16 scalars, {label} | cost | {median:.0f}% of the job's time "
@@ -249,3 +262,34 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         "start within 5% of the truth; cost: the job's note (estimate time over optimizing "
         "time). CPU figures; the GPU's are owed.", "", *lines], [csv],
         time.perf_counter() - began)
+
+
+def cost_against(before: Path, seeds: int = COST_SEEDS) -> None:
+    """The cost figure alone, on this tree's daemon and on one running the code of another
+    checkout (``before``), their jobs in turns: ``python bench/calibration.py --cost-against
+    DIR``."""
+    work = Path(os.environ.get("TMPDIR", "/tmp")) / f"calibration-cost-{os.getpid()}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        str(before / d) for d in ("proto", "clients", "daemon"))}
+    with common.daemon(work, "after") as after, common.daemon(work, "before", env=env) as old:
+        for label, (x, y) in (("32x32", (32, 32)), ("128x96", (128, 96))):
+            now, then = _balls_cost([after.client, old.client], x, y, seeds)
+            print(f"16 scalars, {label}: {_median(now)} here, {_median(then)} at {before}",
+                  flush=True)
+
+
+def _median(costs: list[tuple[int, float, float]]) -> str:
+    if not costs:
+        return "none"
+    shares, seconds = [c[2] for c in costs], [c[1] for c in costs]
+    return (f"{statistics.median(shares):.0f}% of the job's time (median of {len(shares)}; "
+            f"{min(shares):.0f}-{max(shares):.0f}%), {statistics.median(seconds):.2g} s")
+
+
+if __name__ == "__main__":
+    import argparse
+    parser = argparse.ArgumentParser(description=cost_against.__doc__)
+    parser.add_argument("--cost-against", type=Path, required=True, metavar="DIR")
+    parser.add_argument("--seeds", type=int, default=COST_SEEDS)
+    args = parser.parse_args()
+    cost_against(args.cost_against.resolve(), args.seeds)

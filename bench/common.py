@@ -156,10 +156,11 @@ def _die_with_parent() -> None:
 
 @contextmanager
 def daemon(work: Path, name: str = "daemon", extra: Sequence[str] = (),
-           users: Sequence[str] = ()) -> Iterator[Daemon]:
+           users: Sequence[str] = (), env: dict[str, str] | None = None) -> Iterator[Daemon]:
     """``python -m matoptd`` on a free loopback port with its own data dir, as users start it,
     with ``extra`` flags; with ``users``, a tokens file for them (``client`` is the first
-    user's). SIGTERM on the way out (SIGKILL if it does not stop in 60 s)."""
+    user's); ``env``: its environment (another checkout's PYTHONPATH), else this one's.
+    SIGTERM on the way out (SIGKILL if it does not stop in 60 s)."""
     directory = work / f"{name}-{uuid.uuid4().hex[:6]}"
     directory.mkdir(parents=True)
     port_file, log = directory / "port", directory / "matoptd.log"
@@ -170,7 +171,8 @@ def daemon(work: Path, name: str = "daemon", extra: Sequence[str] = (),
         command += ["--tokens", str(directory / "tokens")]
     with open(log, "wb") as out:
         process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
-                                   stderr=subprocess.STDOUT, preexec_fn=_die_with_parent)
+                                   stderr=subprocess.STDOUT, preexec_fn=_die_with_parent,
+                                   env=env)
     try:
         deadline = time.monotonic() + 180
         while not port_file.exists():

@@ -22,6 +22,8 @@ GREEN = "green.reflectance.value"
 TEXTURE = "quad.bsdf.reflectance.data"
 GRID = "box.interior_medium.albedo.data"
 ALBEDO = "ball.interior_medium.albedo.value.value"
+ETA = "ball.bsdf.eta"
+RANGES = {ETA: (1.0, 2.0)}
 
 
 @pytest.fixture(scope="module")
@@ -79,10 +81,23 @@ def _grid():
             "type": "gridvolume", "filter_type": "nearest", "grid": mi.VolumeGrid(voxels)}}})
 
 
+def _glass():
+    """A rough glass ball (alpha 0.01: eta by differences) in front of a checkered backdrop."""
+    backdrop = np.indices((8, 8)).sum(axis=0) % 2 * 0.6 + 0.2
+    return _lit("prb", 4, [0, 0, 4], ball={
+        "type": "sphere", "radius": 0.7, "bsdf": {"type": "roughdielectric", "alpha": 0.01,
+                                                 "int_ior": 1.5}},
+        wall={"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1.5])
+              @ mi.ScalarTransform4f().scale(2.0), "bsdf": {"type": "diffuse", "reflectance": {
+                  "type": "bitmap", "filter_type": "nearest", "bitmap": mi.Bitmap(
+                      np.repeat(backdrop[..., None], 3, axis=2).astype(np.float32))}}})
+
+
 def _settings(keys, iterations: int = 8, spp_from=None, fit_exposure: bool = False,
               sensor_mode: str = "accumulate", **choices: str) -> api.JobSettings:
     return api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [],
-                           [api.ParameterSetting(k, 0.05, 0.0, 1.0) for k in keys],
+                           [api.ParameterSetting(k, 0.05, *RANGES.get(k, (0.0, 1.0)))
+                            for k in keys],
                            iterations=iterations, spp=4, choices=choices,
                            spp_from=spp_from or {}, fit_exposure=fit_exposure,
                            sensor_mode=sensor_mode)
@@ -97,7 +112,8 @@ def _references(optimize, scene) -> dict:
 def _start(make, keys) -> dict[str, np.ndarray]:
     """Each parameter moved away from the scene's value (what the job starts from)."""
     params = mi.traverse(make())
-    return {k: np.clip(np.asarray(params[k]).ravel() * 0.5 + 0.1, 0, 1) for k in keys}
+    return {k: np.asarray(params[k]).ravel() * 1.06 if k in RANGES else
+            np.clip(np.asarray(params[k]).ravel() * 0.5 + 0.1, 0, 1) for k in keys}
 
 
 class Job:
@@ -154,6 +170,23 @@ def test_frozen_follows_the_unfrozen_trajectory(optimize, make, keys, extra):
     assert frozen.loop.said == []
 
 
+def test_eta_by_differences_runs_frozen_on_the_unfrozen_trajectory(optimize):
+    """A dielectric's eta near the specular limit is stepped by differences of renders at
+    eta +- h: those renders replay too, and the iteration's own renders come out of its
+    recording, so such a job (Tables 2 and 4 of the thesis) is frozen."""
+    frozen = Job(optimize, _glass, _settings([ETA])).run(8)
+    plain = Job(optimize, _glass, _settings([ETA], frozen="off")).run(8)
+    assert frozen.loop.group is not None and plain.loop.group is None
+    eta = next(c for c in frozen.loop.active if c.name == "eta_differences")
+    assert eta.on and "replayed" in _why(frozen.loop)
+    _same(frozen.steps, plain.steps)
+    # it stepped, towards the truth (1.5) from 1.59
+    assert frozen.steps[-1].values[ETA][0] < frozen.steps[0].values[ETA][0] - 1e-3
+    # the sides rendered by their recording, replayed; the loss's recording
+    assert 1 <= frozen.loop.group.images.n_recordings <= 3
+    assert frozen.loop.group.recordings <= 6
+
+
 def test_multires_level_changes_keep_the_recording(optimize):
     job = Job(optimize, _quad, _settings([TEXTURE])).run(8)
     level = next(c for c in job.loop.choices if c.name == "multires").level[TEXTURE]
@@ -195,8 +228,8 @@ def test_two_jobs_stepped_in_turn_follow_their_own_trajectories(optimize):
 def test_a_choice_that_maps_the_renders_falls_back_and_says_why(optimize):
     job = Job(optimize, _cornell, _settings([RED, GREEN], iterations=3, fit_exposure=True)).run(3)
     assert job.loop.group is None
-    assert _why(job.loop) == ("not frozen: exposure_gains map or keep the renders themselves, "
-                              "outside what is recorded")
+    assert _why(job.loop) == ("not frozen: exposure_gains map the renders themselves, outside "
+                              "what is recorded")
     assert next(c for c in job.loop.choices if c.name == "frozen").notes() == [
         f"frozen: {_why(job.loop)}"]
 

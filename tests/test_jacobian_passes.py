@@ -112,3 +112,72 @@ def test_two_estimates_from_one_pass_are_independent_and_unbiased(rgb):
     image = np.array(mi.render(scene, integrator=integrator, spp=1024, seed=3))[..., :3]
     for half in (first, second):
         assert abs(half.mean() / image.mean() - 1) < 0.01
+
+
+def _glass_and_texture():
+    """A textured quad behind a rough glass ball (prb): a colour, a texture's modes and a
+    dielectric's eta (by differences) in one J."""
+    texels = np.random.default_rng(3).uniform(0.2, 0.8, (8, 8, 3)).astype(np.float32)
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "prb", "max_depth": 4},
+        "sensor": {"type": "perspective", "fov": 35, "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 24, "height": 24, "rfilter": {"type": "box"}}},
+        "light": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+        "ball": {"type": "sphere", "radius": 0.6, "bsdf": {"type": "roughdielectric",
+                                                           "alpha": 0.2, "int_ior": 1.5}},
+        "side": {"type": "sphere", "center": [1.1, 0.8, 0], "radius": 0.4, "bsdf": {
+            "type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.4, 0.2]}}},
+        "quad": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1])
+                 @ mi.ScalarTransform4f().scale(1.6), "bsdf": {"type": "diffuse", "reflectance": {
+                     "type": "bitmap", "filter_type": "nearest", "bitmap": mi.Bitmap(texels)}}}})
+
+
+def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
+    """J's passes frozen (split_samples.Frozen: recorded once per sensor and spp, replayed
+    for each component's tangent and seed) give the unfrozen J^T J, noise and standard
+    errors, for a colour (forward mode, packed), a texture's modes and an eta (differences)."""
+    from matoptd.engine import uncertainty
+    scene = _glass_and_texture()
+    params = mi.traverse(scene)
+    integrator = mi.load_dict({"type": "prb", "max_depth": 4})
+    quantities = [
+        rgb.Quantity("side.bsdf.reflectance.value",
+                     np.array(params["side.bsdf.reflectance.value"], np.float64).ravel(),
+                     False, 0.0, 1.0),
+        rgb.Quantity("quad.bsdf.reflectance.data",
+                     np.array(params["quad.bsdf.reflectance.data"], np.float64).ravel(), False,
+                     0.0, 1.0, channels=3, shape=(8, 8, 3)),
+        rgb.Quantity("ball.bsdf.eta", np.array([1.5]), True, 1.0, 2.0, difference=True,
+                     eta=True)]
+    reference = np.array(mi.render(scene, spp=64, seed=4))[..., :3]
+    sensors = {0: rgb.Sensor(reference, None)}
+    job = rgb.Job("mse", 8, 3, False, 100.0)
+    # the scene as a job leaves it for J (Renders.holding): the values assigned
+    from matoptd.engine import parameters
+    for q in quantities:
+        params[q.key] = parameters.assign(params[q.key], q.value)
+    params.update()
+    # the same samples either way: the job's spp and one round, whatever the timings
+    monkeypatch.setattr(rgb, "_samples", lambda budget, passes, cost, spp: spp)
+    monkeypatch.setattr(rgb, "SIGNAL", 0.0)
+    out = {}
+    for freeze in (False, True):
+        lin = rgb.linearize(scene, params, integrator, "prb", quantities, sensors, job, freeze)
+        out[freeze] = lin, uncertainty.estimate(lin, quantities, sensors, job, None)
+    (plain, plain_se), (frozen, frozen_se) = out[False], out[True]
+    assert len(plain.components) == 3 + 9 + 1 and plain.notes == []
+    assert frozen.notes and frozen.notes[0].startswith("standard errors: J's passes frozen")
+    assert "carried outside" in frozen.notes[0]  # the texture's data: derived at update()
+    for name in ("hessian", "noise", "reference", "spread"):
+        a, b = getattr(plain.fit, name), getattr(frozen.fit, name)
+        assert np.abs(a).max() > 0
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5 * np.abs(a).max())
+    assert plain_se.errors.keys() == frozen_se.errors.keys() and plain_se.errors
+    assert np.all(np.isfinite(plain_se.errors["side.bsdf.reflectance.value"].error))
+    for key, e in plain_se.errors.items():
+        np.testing.assert_allclose(frozen_se.errors[key].error, e.error, rtol=1e-4)
+        assert frozen_se.errors[key].reading == e.reading
+    # parameters are back at their values afterwards
+    for q in quantities:
+        np.testing.assert_allclose(np.array(params[q.key]).ravel(), q.value, rtol=1e-6)

@@ -55,7 +55,8 @@ CHOICES = {
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
                 "steadily",
     "frozen": "each iteration's render, loss and backward pass recorded once and replayed "
-              "(dr.freeze): no Python tracing per iteration; same results",
+              "(dr.freeze), and so are eta's difference renders and the standard errors' "
+              "passes: no Python tracing per iteration; same results",
 }
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name

@@ -62,11 +62,15 @@ class Context:
         return self._loop.loss
 
     @property
+    def keeps_images(self) -> bool:
+        """Whether a choice in force reads ``images``."""
+        return self._loop.hooks.wants_images
+
+    @property
     def render_hooks(self) -> list[str]:
-        """The choices in force that map a sensor's renders or keep them (by name)."""
+        """The choices in force that map a sensor's renders (by name)."""
         loop = self._loop
-        return [c.name for c in loop.active
-                if c in loop.hooks.by_hook["on_images"] or c.wants_images]
+        return [c.name for c in loop.active if c in loop.hooks.by_hook["on_images"]]
 
     def note(self, line: str) -> None:
         """A line for the job's notes, said during the job (reported at its end)."""

@@ -12,6 +12,10 @@ What keeps a replay equal to the unfrozen iteration:
   ``backward`` carries the leaves' gradients on to u through them (plus the choices' loss
   terms, smoothness), as ``dr.backward`` of the whole would.
 - The film, the integrator and the scene are made outside and never inside.
+- A choice that reads the iteration's renders (eta by differences) gets them as the
+  function's outputs, detached; its own renders at other values (eta +- h) are other
+  frozen functions' (``renders.Renders.frozen``), the values set outside and read from the
+  scene, an argument.
 
 A structure here: the spp, the integrator object, the films' sizes. When it changes, the old
 recordings are dropped and the job's notes say that it recorded again and why.
@@ -48,16 +52,37 @@ def unfreezable(integrator: str, kinds: dict[str, str]) -> str:
 
 
 def _group_loss(scene, params, integrator, sensors, seeds, targets, weights, spp, divisor,
-                fn, clamp):
+                fn, clamp, keep):
     """The loss of a group of sensors (their sum over ``divisor``), back-propagated to the
-    scene's parameters; the function that is frozen."""
-    total = 0
+    scene's parameters, and each sensor's renders, detached, where ``keep`` (for a choice
+    that reads them: eta by differences); the function that is frozen."""
+    total, kept = 0, []
     for sensor, drawn, target, weight in zip(sensors, seeds, targets, weights):
         images = render_images(scene, params, integrator, sensor, spp, drawn)
         total += image_loss(fn, clamp, images, target, weight)
+        if keep:
+            kept.append([dr.detach(img) for img in images])
     total /= divisor
     dr.backward(total)
-    return dr.detach(total)
+    return dr.detach(total), kept
+
+
+def call(fn, *args):
+    """``fn(*args)``, a frozen function, with Python's collector off: freeing another job's
+    scene inside a recording enqueues a host function, which a recording refuses by aborting
+    the process."""
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        return fn(*args)
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _detached_images(scene, params, integrator, sensor, spp, seeds):
+    with dr.suspend_grad():
+        return render_images(scene, params, integrator, sensor, spp, seeds)
 
 
 class FrozenLoss:
@@ -67,6 +92,7 @@ class FrozenLoss:
     def __init__(self, ctx) -> None:
         self.ctx = ctx
         self.fn = dr.freeze(_group_loss, warn_after=1000)
+        self.images = dr.freeze(_detached_images, warn_after=1000)
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
         self.structure: tuple | None = None
         self.stale = False    # the leaves hold a gradient not (yet) carried on
@@ -103,27 +129,34 @@ class FrozenLoss:
                 ctx.note(f"frozen: iteration {ctx.iteration} recorded again "
                          f"({self._changed(structure)})")
                 self.fn.clear()
+                self.images.clear()
             self.structure = structure
         if self.stale:  # a loss taken without a step (the last iteration, a skipped one)
             for _, leaf in self.pairs.values():
                 dr.clear_grad(leaf)
         refs = [ctx.references[sensor] for _, sensor in group]
         before = self.fn.n_recordings
-        # Python's collector must not run inside a recording: freeing another job's scene
-        # there enqueues a host function, which a recording refuses by aborting the process.
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            total = self.fn(ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
-                            [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
-                            [r.image for r in refs], [r.weight for r in refs], ctx.spp,
-                            float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
-        finally:
-            if collecting:
-                gc.enable()
+        keep = ctx.keeps_images
+        total, images = call(
+            self.fn, ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
+            [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
+            [r.image for r in refs], [r.weight for r in refs], ctx.spp, float(divisor),
+            ctx.loss.fn, bool(ctx.settings.clamp), keep)
+        if keep:
+            ctx.images.update({sensor: kept for (_, sensor), kept in zip(group, images)})
         self.recordings += self.fn.n_recordings - before
         self.stale = True
         return total
+
+    def render(self, scene, params, integrator, sensor: int, spp: int, seeds: list[int]
+               ) -> list:
+        """``renders.render_images``, detached, replayed (a choice's renders at other values,
+        set outside: the scene is an argument, read afresh at each replay)."""
+        before = self.images.n_recordings
+        out = call(self.images, scene, params, integrator, sensor, spp,
+                   [dr.opaque(mi.UInt32, s) for s in seeds])
+        self.recordings += self.images.n_recordings - before
+        return out
 
     def backward(self, extra) -> None:
         """The leaves' gradients on to Adam's variables through the maps, with the gradient

@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import covariance, parameters, split_samples
+from . import covariance, frozen, parameters, split_samples
 from .rows import linearized, rows
 
 
@@ -181,11 +181,48 @@ class Linearization:
     components: list[_Component]
     fit: covariance.Linearized | None  # None: too many components to estimate
     seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)  # for the job's notes: frozen or why not
 
 
 def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
               integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
-              job: Job) -> Linearization:
+              job: Job, freeze: bool = False) -> Linearization:
+    """``_linearize`` with its passes frozen (split_samples.Frozen) where ``freeze`` and the
+    integrator allows, else unfrozen; a frozen estimate that fails is made again unfrozen,
+    its notes saying why."""
+    why = unfrozen(integrator, integrator_name) if freeze else ""
+    if not freeze or why:
+        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job)
+        out.notes += [f"standard errors: J's passes not frozen: {why}"] if why else []
+        return out
+    try:
+        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
+                         split_samples.Frozen())
+    except Exception as exc:  # noqa: BLE001 - the unfrozen passes give the same estimate
+        while exc.__cause__ is not None:  # Dr.Jit's says "see above": the cause says what
+            exc = exc.__cause__
+        for q in quantities:  # a pass may have failed with its leaves or sides set
+            params[q.key] = parameters.assign(params[q.key], q.value)
+        params.update()
+        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job)
+        out.notes.append(f"standard errors: J's passes not frozen: recording them failed "
+                         f"({type(exc).__name__}: {exc})")
+    return out
+
+
+def unfrozen(integrator: mi.Integrator, integrator_name: str) -> str:
+    """Why J's passes cannot be frozen with this integrator, in words; "" when they can."""
+    if integrator_name not in frozen.FREEZABLE:
+        return (f"the integrator {integrator_name} samples silhouette edges into arrays of "
+                "data-dependent size, which a recording cannot replay")
+    if not split_samples.shares_primal(integrator):
+        return f"the integrator {integrator_name}'s forward mode is not RBIntegrator's"
+    return ""
+
+
+def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
+               integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
+               job: Job, recorded: split_samples.Frozen | None = None) -> Linearization:
     """J, the render noise and the residual at the values ``params`` holds (set by the
     caller to ``quantities``' values), as H, Q and Q_R.
 
@@ -201,6 +238,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
     if len(comps) > MAX_COMPONENTS:
         return Linearization(comps, None)
     by_key = {q.key: q for q in quantities}
+    # unfrozen, as the spp the passes get follows their cost at 1 spp and at the job's: a
+    # frozen pass costs less, which the rounds' own times then show
     renders = {s: [_render(scene, params, integrator, s, job.spp, _draw(job.seed, n))
                    for n in (0, 1)] for s in sensors}
     full = (time.perf_counter() - began) / (2 * len(sensors))
@@ -232,14 +271,15 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         passes = _passes(todo, comps, by_key, params)  # reads the scene: once a round
         for s in sensors:
             seeds = (_draw(job.seed, draw), _draw(job.seed, draw + 1))
-            traced = (split_samples.trace(scene, integrator, s, spp, seeds[0]) if split and any(
+            traced = ((recorded or split_samples).trace(scene, integrator, s, spp, seeds[0])
+                      if split and any(
                 forward_mode(by_key[comps[ks[0]].key], integrator_name) for ks in passes)
                 else None)
             for ks in passes:
                 q = by_key[comps[ks[0]].key]
                 pair = _columns(scene, params, integrator, integrator_name, q,
                                 [comps[k].index for k in ks], s, spp, seeds, together, traced,
-                                comps[ks[0]].mode)
+                                comps[ks[0]].mode, recorded)
                 for n, new in enumerate(pair):
                     for k, column in zip(ks, new):
                         old = columns[s][n][k]
@@ -260,7 +300,12 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         if not short or time.perf_counter() - began + then > budget:
             break
         todo, spp = short, spp * 4
-    return Linearization(comps, fit, time.perf_counter() - began)
+    return Linearization(comps, fit, time.perf_counter() - began,
+                         [] if recorded is None else [
+                             f"standard errors: J's passes frozen ({recorded.recordings} "
+                             "recordings" + ("" if recorded.inside else "; the tangents "
+                                             "carried outside them, to values the scene "
+                                             "derives at update()") + ")"])
 
 
 def _draw(seed: int, n: int) -> int:
@@ -350,7 +395,8 @@ def _channels_apart(q: Quantity, params: mi.SceneParameters) -> bool:
 
 def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
              indices: list[int], sensor: int, spp: int, seeds: tuple[int, int],
-             together: list[Quantity], traced: split_samples.Traced | None, mode: int = 0
+             together: list[Quantity], traced: split_samples.Traced | None, mode: int = 0,
+             recorded: split_samples.Frozen | None = None
              ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """d(render)/d(latent component) for each of ``indices`` as (H, W, 3) images, twice from
     independent samples, from passes that move them together (several only where
@@ -358,7 +404,7 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
     ``together``: every quantity whose J comes in forward mode (``forward_mode``);
     ``traced``: this round's rays and primal pass, when the integrator's forward mode can
     reuse them (split_samples: both estimates from one pass), else None. ``mode``: of a
-    texture or grid, which of MODES."""
+    texture or grid, which of MODES; ``recorded``: the passes frozen, else None."""
     tangent = _tangent(q, indices, mode)
     if not forward_mode(q, integrator_name):
         h = _latent_step(q)
@@ -375,7 +421,9 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
             dr.make_opaque(side)  # as in forward mode: one kernel for every component
             params.update()
             # the same samples on both sides, other samples for the other estimate
-            if split_samples.shares_primal(integrator):
+            if recorded is not None:
+                images = recorded.primal(scene, integrator, sensor, spp, seeds[0])
+            elif split_samples.shares_primal(integrator):
                 images = split_samples.primal(split_samples.trace(
                     scene, integrator, sensor, spp, seeds[0]), integrator)
             else:
@@ -401,22 +449,24 @@ def _columns(scene, params, integrator, integrator_name: str, q: Quantity,
         dr.enable_grad(leaf)
         params[other.key] = leaf
     params.update()
-    # The tangent reaches what the plugin derives from the value at update() (a dielectric's
-    # 1/eta) before the render, whose forward pass only follows edges made inside it.
+    directions = []
     for other in together:
-        leaf = leaves[other.key]
-        direction = parameters.assign(leaf, tangent if other.key == q.key
-                                      else np.zeros(other.value.size))
-        dr.make_opaque(direction)
-        dr.set_grad(leaf, direction)
-        dr.enqueue(dr.ADMode.Forward, leaf)
-    dr.traverse(dr.ADMode.Forward, dr.ADFlag.ClearEdges)
-    if traced is not None:
-        images = split_samples.forward(traced, scene, integrator)
+        directions.append(parameters.assign(leaves[other.key], tangent if other.key == q.key
+                                            else np.zeros(other.value.size)))
+        dr.make_opaque(directions[-1])
+    if recorded is not None and traced is not None:
+        images = recorded.forward(traced, scene, params, integrator, list(leaves), directions)
     else:
-        images = tuple(np.array(integrator.render_forward(
-            scene, params, sensor=sensor, seed=seed, spp=spp), dtype=np.float64)[..., :3]
-            for seed in seeds)
+        # The tangent reaches what the plugin derives from the value at update() (a
+        # dielectric's 1/eta) before the render, whose forward pass only follows edges made
+        # inside it.
+        split_samples.tangents(list(leaves.values()), directions)
+        if traced is not None:
+            images = split_samples.forward(traced, scene, integrator)
+        else:
+            images = tuple(np.array(integrator.render_forward(
+                scene, params, sensor=sensor, seed=seed, spp=spp), dtype=np.float64)[..., :3]
+                for seed in seeds)
     for other in together:
         params[other.key] = parameters.assign(params[other.key], other.value)
     params.update()

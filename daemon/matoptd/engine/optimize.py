@@ -122,6 +122,7 @@ class Optimization:
         self.group = next(filter(None, (c.group_loss(self.ctx) for c in self.active)), None)
         if self.group is not None:
             self._apply()  # the scene's values as the group's leaves
+            self.renders.frozen = self.group.render
         self.initial = self.theta()[0]
         if saved is not None:
             self._restore(saved)

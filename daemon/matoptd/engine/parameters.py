@@ -245,9 +245,12 @@ def assign(template, values: np.ndarray):
     expected = int(np.prod(template.shape)) if dr.is_tensor_v(template) else len(flat(template))
     if values.size != expected:
         raise ValueError(f"expected {expected} values, got {values.size}")
+    # Computed from the array, not its memory mapped: mapped memory is aligned or not by
+    # chance, and a frozen function records again whenever that changes (x * 1 + 0 is x).
+    owned = dr.fma(mi.Float(values), dr.opaque(mi.Float, 1.0), 0.0)
     if dr.is_tensor_v(template):
-        return type(template)(values.reshape(template.shape))
-    return dr.unravel(type(template), mi.Float(values))
+        return type(template)(owned, template.shape)
+    return dr.unravel(type(template), owned)
 
 
 def default_learning_rate(info: Info) -> float:

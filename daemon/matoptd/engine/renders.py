@@ -58,7 +58,8 @@ def image_loss(fn: Callable, clamp: bool, images: list, target, weight):
 class Renders:
     """The scene, its traversal (kept to the selected keys), the integrator and references;
     ``on_images``: the choices' map of a sensor's renders; ``restore``: the scene back to the
-    loop's theta after a render ``holding`` other values."""
+    loop's theta after a render ``holding`` other values; ``frozen``: what renders a choice's
+    detached images (eta +- h) where the iterations are frozen."""
 
     scene: mi.Scene
     params: mi.SceneParameters
@@ -68,6 +69,7 @@ class Renders:
     on_images: Callable[[int, list], list]
     restore: Callable[[], None]
     integrator: mi.Integrator | None = None
+    frozen: Callable | None = None  # render_images as a frozen function (frozen.py), if any
 
     def seeds(self, i: int, n: int, draw: int = 0) -> list[int]:
         """The render seeds of slot n's sensor at iteration i; ``draw`` picks another set."""
@@ -79,8 +81,9 @@ class Renders:
     def sensor_images(self, i: int, n: int, sensor: int, draw: int, spp: int) -> list:
         """The renders the loss compares for slot n's sensor at iteration i, as the choices
         make them (times the gain, ...); ``draw`` picks another set of samples."""
-        return self.on_images(sensor, render_images(self.scene, self.params, self.integrator,
-                                                    sensor, spp, self.seeds(i, n, draw)))
+        render = self.frozen or render_images
+        return self.on_images(sensor, render(self.scene, self.params, self.integrator, sensor,
+                                             spp, self.seeds(i, n, draw)))
 
     def image_loss(self, images: list, ref: Reference):
         """The loss of a sensor's renders against its reference (both clamped to [0, 1] when

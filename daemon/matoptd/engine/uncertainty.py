@@ -267,6 +267,8 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
     linearized: Linearization | None = None
     began = time.perf_counter()
     count, reused = 0, ""
+    freeze = any(c.name == "frozen" for c in opt.active)  # --choice frozen=off: unfrozen
+    notes: list[str] = []
     for which, it, quantities, sensors, skipped in kept:
         if linearized is None or any(which == k[0] for k in apart):
             # A second linearization only where the first left it its share of the budget:
@@ -278,8 +280,10 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
                 with opt.renders.holding(it.values):
                     linearized = linearize(opt.renders.scene, opt.renders.params,
                                            opt.renders.integrator,
-                                           opt.integrator_name, quantities, sensors, job)
+                                           opt.integrator_name, quantities, sensors, job,
+                                           freeze)
                 count += 1
+                notes += linearized.notes
         adam = _adam(opt, it) if LOSSES[job.loss].least_squares else None
         out[which] = estimate(linearized, quantities, sensors, job, adam)
         out[which].notes[:0] = skipped
@@ -291,6 +295,7 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
                            f"({100 * seconds / max(opt.progress.elapsed, 1e-9):.0f}% of the job's "
                            f"optimizing time{', two linearizations' if count > 1 else ''}"
                            f"{reused})")
+            e.notes += list(dict.fromkeys(notes))
     return out
 
 

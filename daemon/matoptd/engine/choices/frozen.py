@@ -6,7 +6,9 @@ Where Python's tracing is most of an iteration (small films, few sensors' worth 
 replay saves most of it; the first iteration of each structure records and costs more than
 an unfrozen one. A job falls back to the unfrozen loop, and its notes say why, where its
 scene or parameters cannot be frozen (moving geometry, a projective integrator) or where a
-choice in force maps or keeps the renders themselves (exposure gains, eta by differences).
+choice in force maps the renders themselves (exposure gains). A choice that reads the
+iteration's renders (eta by differences) gets them from the recording, and its own renders
+at other values are replayed too (engine/frozen.py).
 """
 
 from __future__ import annotations
@@ -30,14 +32,15 @@ class Frozen(Choice):
     def begin(self, ctx):
         hooks = ctx.render_hooks
         if hooks and not self.reason:
-            self.reason = (f"{', '.join(hooks)} map or keep the renders themselves, outside "
-                           "what is recorded")
+            self.reason = (f"{', '.join(hooks)} map the renders themselves, outside what is "
+                           "recorded")
             self._say()
 
     def _say(self) -> None:
         self.why = (f"not frozen: {self.reason}" if self.reason else
                     "each sensor group's render, loss and backward pass recorded once (and "
-                    "again when the spp, integrator or film changes) and replayed: no Python "
+                    "again when the spp, integrator or film changes) and replayed, as are "
+                    "eta's difference renders and the standard errors' passes: no Python "
                     "tracing per iteration")
 
     def group_loss(self, ctx):
