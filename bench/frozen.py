@@ -2,89 +2,181 @@
 backward pass recorded once with dr.freeze and replayed), with it off, and a plain Mitsuba
 loop, at equal work.
 
-The job: overhead's (the Cornell box's red and green walls from grey, MSE, Adam 0.03
-constant, 4 spp, prb at the scene's depth 8, the same seeds on all three sides) at 32x32,
-64x64 and 128x96. Each size runs three rounds after a warm-up of each side (kernels
-compiled); within a round the three sides take turns, their order rotated from round to
-round. Per-iteration time is steady state from the daemon's history (iteration 0 out; the
-frozen job's second recording, at iteration 1, in). Ratios are per round, then the median.
+1. The Cornell box: overhead's job (the red and green walls from grey, MSE, Adam 0.03
+   constant, 4 spp, prb at the scene's depth 8, the same seeds on all three sides) at 32x32,
+   64x64 and 128x96. Per-iteration time is steady state from the daemon's history
+   (iteration 0 out; the frozen job's second recording, at iteration 1, in).
+2. The thesis's Table 2 and Table 4 scenes (``--thesis-repo``; skipped when absent) at
+   32x24, 64x48 and 128x96: the daemon's defaults (every choice as it comes: eta's
+   differences, the standard errors at the end) at the plain loop's spp against the plain
+   loop of bench/real_scenes.py. Here the daemon's time is its whole job from iteration 0's
+   end to the job's end, so the defaults' own extra work (differences, J's rounds) counts.
+
+Each size runs three rounds after a warm-up of each side (kernels compiled); within a round
+the sides take turns, their order rotated from round to round. Ratios are per round, then
+the median.
 """
 
 from __future__ import annotations
 
 import time
 import uuid
+from typing import Callable
 
 import common
 import plain
+import real_scenes
 from common import Result, Settings, Target
 from matopt_api.v1 import matopt_pb2 as pb
 
 SIZES = [(32, 32), (64, 64), (128, 96)]
+THESIS_SIZES = [(32, 24), (64, 48), (128, 96)]
 SPP = 4
+# Targets for the daemon's defaults against the plain loop on the thesis's scenes (CPU).
+TARGETS = {32: 0.5, 128: 0.8}
 
 
-def run(settings: Settings, server: common.Daemon) -> Result:
-    began = time.perf_counter()
-    iterations, rounds = (20, 3) if settings.quick else (50, 3)
+Side = Callable[[int], tuple[float, float]]  # round -> (seconds per iteration, last loss)
+
+
+def _rounds(sides: dict[str, Side], rounds: int) -> tuple[dict[str, list[float]],
+                                                          dict[str, list[float]]]:
+    """Each side once to warm up, then ``rounds`` rounds in rotated order: per side, its
+    seconds per iteration and last loss of each round."""
+    times: dict[str, list[float]] = {m: [] for m in sides}
+    losses: dict[str, list[float]] = {m: [] for m in sides}
+    for side in sides.values():
+        side(-1)
+    names = list(sides)
+    for r in range(rounds):
+        for name in names[r % len(names):] + names[:r % len(names)]:
+            seconds, loss = sides[name](r)
+            times[name].append(seconds)
+            losses[name].append(loss)
+    return times, losses
+
+
+def _ratio(times: dict[str, list[float]], a: str, b: str) -> float:
+    return common.median([x / y for x, y in zip(times[a], times[b])])
+
+
+def _cornell(settings: Settings, server: common.Daemon, iterations: int, rounds: int,
+             rows: list[dict], targets: list[Target], lines: list[str]) -> None:
     client = server.client
-    rows: list[dict] = []
-    targets: list[Target] = []
-    lines = [f"Cornell box walls from grey, {SPP} spp, {iterations} iterations, Adam 0.03 "
-             f"constant, MSE, prb depth 8 on all sides, the same seeds; {rounds} rounds "
-             "after a warm-up of each side, order rotated; ms per iteration (median) and "
-             "ratios per round (median)."]
+    lines.append(f"Cornell box walls from grey, {SPP} spp, {iterations} iterations, Adam 0.03 "
+                 f"constant, MSE, prb depth 8 on all sides, the same seeds; {rounds} rounds "
+                 "after a warm-up of each side, order rotated; ms per iteration (median) and "
+                 "ratios per round (median).")
     for width, height in SIZES:
+        size = f"{width}x{height}"
         scene = client.scenes.CreateScene(pb.CreateSceneRequest(
             overrides={"resx": str(width), "resy": str(height)}, request_id=str(uuid.uuid4())))
         ref_blob, ref_path = common.reference(client, scene, 64, settings.work)
         baseline = plain.PlainSpec(common.CORNELL_XML, ref_path,
                                    {k: common.GREY for k in common.WALLS}, iterations, SPP,
                                    "prb", 8, overrides={"resx": str(width), "resy": str(height)})
-        times: dict[str, list[float]] = {"frozen": [], "unfrozen": [], "plain": []}
-        losses: dict[str, list[float]] = {"frozen": [], "unfrozen": [], "plain": []}
 
-        def job(frozen: str, r: int) -> None:
-            spec = common.wall_spec(scene, ref_blob, iterations=iterations, spp=SPP, seed=0)
-            spec.choices["frozen"] = frozen
-            done = common.run_job(client, spec, server=server)
-            common.require_success(done, "frozen")
-            method = "frozen" if frozen == "on" else "unfrozen"
-            record(method, r, common.per_iteration(done.seconds), done.history[-1].loss)
+        def job(frozen: str) -> Side:
+            def side(r: int) -> tuple[float, float]:
+                spec = common.wall_spec(scene, ref_blob, iterations=iterations, spp=SPP, seed=0)
+                spec.choices["frozen"] = frozen
+                done = common.run_job(client, spec, server=server)
+                common.require_success(done, "frozen")
+                return _row(rows, "cornell", size, "frozen" if frozen == "on" else "unfrozen",
+                            r, common.per_iteration(done.seconds), done.history[-1].loss)
+            return side
 
-        def loop(r: int) -> None:
+        def loop(r: int) -> tuple[float, float]:
             its = plain.run(baseline, server.variant)
-            record("plain", r, common.per_iteration([it.seconds for it in its]), its[-1].loss)
+            return _row(rows, "cornell", size, "plain", r,
+                        common.per_iteration([it.seconds for it in its]), its[-1].loss)
 
-        def record(method: str, r: int, seconds: float, loss: float) -> None:
-            rows.append({"size": f"{width}x{height}", "round": r, "method": method,
-                         "seconds_per_iteration": seconds, "loss_last": loss})
-            if r >= 0:
-                times[method].append(seconds)
-                losses[method].append(loss)
-
-        sides = [lambda r: job("on", r), lambda r: job("off", r), loop]
-        for side in sides:
-            side(-1)  # warm-up
-        for r in range(rounds):
-            for side in sides[r % 3:] + sides[:r % 3]:
-                side(r)
-        frozen_plain = common.median([f / p for f, p in zip(times["frozen"], times["plain"])])
-        unfrozen_plain = common.median([u / p for u, p in zip(times["unfrozen"],
-                                                               times["plain"])])
-        frozen_unfrozen = common.median([f / u for f, u in zip(times["frozen"],
-                                                               times["unfrozen"])])
+        times, losses = _rounds({"frozen": job("on"), "unfrozen": job("off"), "plain": loop},
+                                rounds)
+        frozen_plain = _ratio(times, "frozen", "plain")
+        unfrozen_plain = _ratio(times, "unfrozen", "plain")
+        frozen_unfrozen = _ratio(times, "frozen", "unfrozen")
         same = all(abs(a - b) <= 1e-4 * abs(b) for a, b in zip(losses["frozen"],
                                                                losses["unfrozen"]))
-        targets.append(Target(f"{width}x{height}: frozen / plain loop", f"{frozen_plain:.2f} "
+        targets.append(Target(f"Cornell box {size}: frozen / plain loop", f"{frozen_plain:.2f} "
                               f"(unfrozen / plain {unfrozen_plain:.2f}, frozen / unfrozen "
                               f"{frozen_unfrozen:.2f})", frozen_plain < 1.0))
         ms = {m: common.median(t) * 1000 for m, t in times.items()}
-        lines.append(f"- {width}x{height}: frozen {ms['frozen']:.1f} ms, unfrozen "
+        lines.append(f"- {size}: frozen {ms['frozen']:.1f} ms, unfrozen "
                      f"{ms['unfrozen']:.1f} ms, plain loop {ms['plain']:.1f} ms per iteration; "
                      f"frozen / plain {frozen_plain:.2f}, unfrozen / plain {unfrozen_plain:.2f}, "
                      f"frozen / unfrozen {frozen_unfrozen:.2f}; last losses frozen = unfrozen: "
                      f"{'yes' if same else 'no'}")
+
+
+def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: int,
+            rows: list[dict], targets: list[Target], lines: list[str]) -> None:
+    lines += ["", f"The thesis's Tables 2 and 4 from the thesis's starts, {iterations} "
+              "iterations, the daemon's defaults at the plain loop's spp (Table 2: 16, Table 4: "
+              "8) against bench/real_scenes.py's plain loop; the daemon's time from iteration "
+              "0's end to the job's end (its differences and standard errors in), the plain "
+              "loop's from iteration 0's end to its last; ms per iteration (median) and ratios "
+              "per round (median)."]
+    for table in real_scenes.TABLES:
+        for width, height in THESIS_SIZES:
+            size = f"{width}x{height}"
+            p = real_scenes.Plan((width, height), iterations, 1, False, server.cuda)
+            prep = real_scenes.prepare(server.client, table, p, settings)
+
+            def job(frozen: str) -> Side:
+                def side(r: int) -> tuple[float, float]:
+                    spec = real_scenes.daemon_spec(prep, 0, iterations)
+                    spec.spp = table.plain_spp
+                    if frozen == "off":
+                        spec.choices["frozen"] = "off"
+                    done = common.run_job(server.client, spec, server=server)
+                    common.require_success(done, f"frozen {table.name}")
+                    whole = ((done.wall - done.first_iteration) / (len(done.history) - 1)
+                             if done.first_iteration is not None else float("nan"))
+                    return _row(rows, table.name, size, "defaults" if frozen == "on" else
+                                "defaults, frozen off", r, whole, done.history[-1].loss)
+                return side
+
+            def loop(r: int) -> tuple[float, float]:
+                run = real_scenes.run_plain(prep, p, 0, server.variant, iterations)
+                return _row(rows, table.name, size, "plain", r, run.per_iteration, float("nan"))
+
+            times, _ = _rounds({"defaults": job("on"), "defaults, frozen off": job("off"),
+                                "plain": loop}, rounds)
+            ratio = _ratio(times, "defaults", "plain")
+            off = _ratio(times, "defaults, frozen off", "plain")
+            target = TARGETS.get(width)
+            targets.append(Target(
+                f"{table.name} {size}: defaults / plain loop"
+                + (f" (<= {target}, CPU)" if target else ""),
+                f"{ratio:.2f} (frozen off: {off:.2f})",
+                None if target is None else ratio <= target))
+            ms = {m: common.median(t) * 1000 for m, t in times.items()}
+            lines.append(f"- {table.name} {size}: defaults {ms['defaults']:.0f} ms, frozen off "
+                         f"{ms['defaults, frozen off']:.0f} ms, plain loop {ms['plain']:.0f} ms "
+                         f"per iteration; defaults / plain {ratio:.2f}, frozen off / plain "
+                         f"{off:.2f}")
+
+
+def _row(rows: list[dict], scene: str, size: str, method: str, r: int, seconds: float,
+         loss: float) -> tuple[float, float]:
+    rows.append({"scene": scene, "size": size, "round": r, "method": method,
+                 "seconds_per_iteration": seconds, "loss_last": loss})
+    return seconds, loss
+
+
+def run(settings: Settings, server: common.Daemon) -> Result:
+    began = time.perf_counter()
+    iterations, rounds = (20, 3) if settings.quick else (50, 3)
+    rows: list[dict] = []
+    targets: list[Target] = []
+    lines: list[str] = []
+    _cornell(settings, server, iterations, rounds, rows, targets, lines)
+    repo = settings.thesis_repo
+    if repo is not None and (repo / real_scenes.TABLES[0].path).exists():
+        _thesis(settings, server, 15 if settings.quick else 30, rounds, rows, targets, lines)
+    else:
+        lines += ["", f"The thesis's Tables 2 and 4: skipped ({repo} has no thesis scenes)."]
     csv = common.write_csv(settings.out / "frozen.csv", rows)
     return Result("frozen", "Frozen iterations against unfrozen and a plain loop", targets,
                   lines, [csv], time.perf_counter() - began)
