@@ -52,7 +52,7 @@ def make(service, tmp_path):
         return api.JobSettings(
             scene, [api.ReferenceInput(0, ref, "ref.exr")],
             [api.ParameterSetting(k, 0.1, 0.0, 1.0, start) for k in (RED, GREEN)],
-            iterations=20, spp=4, schedule="constant", **kw)
+            iterations=20, schedule="constant", **{"spp": 4, **kw})
 
     return engine, settings
 
@@ -193,3 +193,36 @@ def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tm
     finally:
         stubs.close()
         daemon.stop()
+
+
+def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_losses(make):
+    """The kept scene keeps the frozen iteration's recording and the integrator it was made
+    with: a later job of the same structure traces nothing at its iteration 0 (its notes and
+    its status say so) and follows the first job's losses."""
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    _run(engine, "b", settings())  # its first call may record once more (see the module)
+    engine.start("c", settings(), None)
+    opt = engine.runs["c"].opt
+    again = [engine.step("c", 1).records[0].loss for _ in range(4)]
+    frozen = next(s for s in opt.status() if s.name == "frozen")
+    assert opt.group.taken and opt.group.recordings == 0
+    assert "frozen: iteration 0 replayed the recording a job before made on this scene: " \
+           "nothing traced or recorded" in opt.said
+    assert "recording from a job before is taken over" in frozen.why
+    engine.release("c")
+    np.testing.assert_allclose(again, first, rtol=1e-6)
+
+
+def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_alone(make):
+    """A recording is replayed only for its own structure: a job at other spp on the kept
+    scene records again (its notes say why) and follows the losses it has on a new load."""
+    engine, settings = make
+    alone = _run(engine, "spp8", settings(spp=8))
+    _run(engine, "a", settings())  # leaves its spp-4 recording on the kept scene
+    engine.start("spp8-again", settings(spp=8), None)
+    opt = engine.runs["spp8-again"].opt
+    again = [engine.step("spp8-again", 1).records[0].loss for _ in range(4)]
+    assert opt.said[0] == "frozen: iteration 0 recorded again (spp 4 -> 8)"
+    engine.release("spp8-again")
+    np.testing.assert_allclose(again, alone, rtol=1e-6)

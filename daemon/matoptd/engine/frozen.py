@@ -15,6 +15,10 @@ What keeps a replay equal to the unfrozen iteration:
 
 A structure here: the spp, the integrator object, the films' sizes. When it changes, the old
 recordings are dropped and the job's notes say that it recorded again and why.
+
+The frozen function and its structure stay on a kept scene's shelf (kept_scenes.py) for the
+next job on it: with the same integrator (the shelf's) and structure, that job's iteration 0
+replays the recording instead of tracing and recording again.
 """
 
 from __future__ import annotations
@@ -47,13 +51,27 @@ def unfreezable(integrator: str, kinds: dict[str, str]) -> str:
     return ""
 
 
-def _group_loss(scene, params, integrator, sensors, seeds, targets, weights, spp, divisor,
+class _Holder:
+    """The job's SceneParameters, behind an object that stays the same from job to job.
+
+    Dr.Jit cannot look into a SceneParameters, so a recording's key holds the object itself:
+    a new job's (a new traversal) would record again, or replay by chance where Python gave
+    the new object the old one's address. Its values reach the recording through the scene,
+    which is traversed; the object only names what the render differentiates."""
+
+    __slots__ = ("params",)
+
+    def __init__(self) -> None:
+        self.params = None
+
+
+def _group_loss(scene, holder, integrator, sensors, seeds, targets, weights, spp, divisor,
                 fn, clamp):
     """The loss of a group of sensors (their sum over ``divisor``), back-propagated to the
     scene's parameters; the function that is frozen."""
     total = 0
     for sensor, drawn, target, weight in zip(sensors, seeds, targets, weights):
-        images = render_images(scene, params, integrator, sensor, spp, drawn)
+        images = render_images(scene, holder.params, integrator, sensor, spp, drawn)
         total += image_loss(fn, clamp, images, target, weight)
     total /= divisor
     dr.backward(total)
@@ -66,11 +84,16 @@ class FrozenLoss:
 
     def __init__(self, ctx) -> None:
         self.ctx = ctx
-        self.fn = dr.freeze(_group_loss, warn_after=1000)
+        # (the frozen function, its structure, its holder) of a job before on this scene
+        taken = ctx.shelf.get("frozen")
+        self.taken = taken is not None  # a recording made by a job before may replay
+        self.fn, self.structure, self.holder = taken or (
+            dr.freeze(_group_loss, warn_after=1000), None, _Holder())
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
-        self.structure: tuple | None = None
         self.stale = False    # the leaves hold a gradient not (yet) carried on
-        self.recordings = 0   # recordings made (Dr.Jit's count, over every structure)
+        self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
+        self.replayed = 0     # calls that replayed a recording (this job's or one taken)
+        ctx.shelf["frozen"] = (self.fn, self.structure, self.holder)
 
     def leaf(self, key: str, value):
         """v as the scene holds it: detached, gradients on (the recording's input)."""
@@ -104,6 +127,7 @@ class FrozenLoss:
                          f"({self._changed(structure)})")
                 self.fn.clear()
             self.structure = structure
+            self.ctx.shelf["frozen"] = (self.fn, structure, self.holder)
         if self.stale:  # a loss taken without a step (the last iteration, a skipped one)
             for _, leaf in self.pairs.values():
                 dr.clear_grad(leaf)
@@ -114,14 +138,21 @@ class FrozenLoss:
         collecting = gc.isenabled()
         gc.disable()
         try:
-            total = self.fn(ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
+            self.holder.params = ctx.params
+            total = self.fn(ctx.scene, self.holder, ctx.integrator, tuple(s for _, s in group),
                             [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
                             [r.image for r in refs], [r.weight for r in refs], ctx.spp,
                             float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
         finally:
+            self.holder.params = None  # the job's, not the shelf's to keep
             if collecting:
                 gc.enable()
-        self.recordings += self.fn.n_recordings - before
+        made = self.fn.n_recordings - before
+        if self.taken and not (self.recordings or self.replayed or made):
+            ctx.note(f"frozen: iteration {ctx.iteration} replayed the recording a job before "
+                     "made on this scene: nothing traced or recorded")
+        self.recordings += made
+        self.replayed += not made
         self.stale = True
         return total
 

@@ -197,7 +197,8 @@ class MitsubaEngine:
                      for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
-            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
+            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth,
+                               held.shelf if loaded is held.scene else None)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
