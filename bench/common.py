@@ -75,6 +75,8 @@ class Settings:
     seeds: int = 0             # real_scenes: seeds (0: 3)
     tables: tuple[str, ...] = ()  # real_scenes: the tables run (empty: all)
     defaults_only: bool = False  # real_scenes: the plain loop and the defaults, nothing else
+    cost_only: bool = False    # calibration: the standard errors' cost alone
+    deadline: float = 0.0      # real_scenes: epoch seconds by which to end (0: none)
 
 
 # ---------------------------------------------------------------------------------------------
