@@ -19,6 +19,12 @@ recordings are dropped and the job's notes say that it recorded again and why.
 The frozen function and its structure stay on a kept scene's shelf (kept_scenes.py) for the
 next job on it: with the same integrator (the shelf's) and structure, that job's iteration 0
 replays the recording instead of tracing and recording again.
+
+On a scene just loaded, each sensor group's first call runs unfrozen: a render leaves state in
+the scene (its film's, its sampler's) that is among the recording's inputs, so a recording
+made before any render is laid out as no later call is, and would never replay. The first
+event of such a job comes after an unfrozen iteration rather than a recording (which costs
+about 2.5 of them).
 """
 
 from __future__ import annotations
@@ -93,6 +99,8 @@ class FrozenLoss:
         self.stale = False    # the leaves hold a gradient not (yet) carried on
         self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
         self.replayed = 0     # calls that replayed a recording (this job's or one taken)
+        # sensor groups rendered since the scene was loaded (unfrozen, their first time)
+        self.rendered: set[tuple[int, ...]] = set()
         ctx.shelf["frozen"] = (self.fn, self.structure, self.holder)
 
     def leaf(self, key: str, value):
@@ -137,22 +145,26 @@ class FrozenLoss:
         # there enqueues a host function, which a recording refuses by aborting the process.
         collecting = gc.isenabled()
         gc.disable()
+        sensors = tuple(s for _, s in group)
+        fn = self.fn if self.taken or sensors in self.rendered else _group_loss
+        self.rendered.add(sensors)
         try:
             self.holder.params = ctx.params
-            total = self.fn(ctx.scene, self.holder, ctx.integrator, tuple(s for _, s in group),
-                            [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
-                            [r.image for r in refs], [r.weight for r in refs], ctx.spp,
-                            float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
+            total = fn(ctx.scene, self.holder, ctx.integrator, sensors,
+                       [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
+                       [r.image for r in refs], [r.weight for r in refs], ctx.spp,
+                       float(divisor), ctx.loss.fn, bool(ctx.settings.clamp))
         finally:
             self.holder.params = None  # the job's, not the shelf's to keep
             if collecting:
                 gc.enable()
-        made = self.fn.n_recordings - before
-        if self.taken and not (self.recordings or self.replayed or made):
-            ctx.note(f"frozen: iteration {ctx.iteration} replayed the recording a job before "
-                     "made on this scene: nothing traced or recorded")
-        self.recordings += made
-        self.replayed += not made
+        if fn is self.fn:
+            made = self.fn.n_recordings - before
+            if self.taken and not (self.recordings or self.replayed or made):
+                ctx.note(f"frozen: iteration {ctx.iteration} replayed the recording a job "
+                         "before made on this scene: nothing traced or recorded")
+            self.recordings += made
+            self.replayed += not made
         self.stale = True
         return total
 
