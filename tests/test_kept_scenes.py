@@ -232,3 +232,21 @@ def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_a
     assert opt.said[0] == "frozen: iteration 0 recorded again (spp 4 -> 8)"
     engine.release("spp8-again")
     np.testing.assert_allclose(again, alone, rtol=1e-6)
+
+
+def test_the_next_job_against_the_same_reference_reads_it_once(make, monkeypatch):
+    """The kept scene holds the last job's reference images as read: a job against the same
+    file does not decode it again, one against another file does."""
+    from matoptd.engine import images
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    read = []
+    load = images.load_reference
+    monkeypatch.setattr(images, "load_reference", lambda r, blob: read.append(r.name)
+                        or load(r, blob))
+    assert _run(engine, "b", settings()) == pytest.approx(first, rel=1e-6)
+    assert read == []
+    other = settings()
+    other.references[0] = api.ReferenceInput(0, other.references[0].sha256, "again.exr")
+    _run(engine, "c", other)
+    assert read == ["again.exr"]
