@@ -48,6 +48,9 @@ device)
   want=python$(cat "$bundle/python-version")
   command -v "$want" >/dev/null || want=python3
   export PYTHONPATH=$root/proto:$root/clients:$root/daemon
+  # One kernel cache for every case's daemon: the machine starts cold, and each case's warm-up
+  # would otherwise compile the same kernels again on the loan's time.
+  export DRJIT_CACHE_DIR=${DRJIT_CACHE_DIR:-/tmp/matopt-kernel-cache}
   if "$want" -m venv --without-pip "$venv"; then
     python=$venv/bin/python
     site=$("$python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
