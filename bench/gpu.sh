@@ -39,6 +39,12 @@ bundle)
   tar -cf "$bundle/stubs.tar" -C "$root/proto/matopt_api/v1" $(cd "$root/proto/matopt_api/v1" && ls ./*_pb2*.py)
   tar -cJf "$bundle/thesis.tar.xz" -C "$thesis" scenes/material-preview
   echo "$py" > "$bundle/python-version"
+  # The tree travels without git: the commit as of now (build the bundle after the last commit)
+  commit=$(git -C "$root" rev-parse --short HEAD)
+  if git -C "$root" status --porcelain -- daemon proto bench | grep -q .; then
+    commit="$commit, daemon/, proto/ or bench/ modified"
+  fi
+  echo "$commit (when its bundle was built)" > "$bundle/commit"
   du -ch "$bundle"/*
   ;;
 device)
@@ -51,6 +57,7 @@ device)
   # One kernel cache for every case's daemon: the machine starts cold, and each case's warm-up
   # would otherwise compile the same kernels again on the loan's time.
   export DRJIT_CACHE_DIR=${DRJIT_CACHE_DIR:-/tmp/matopt-kernel-cache}
+  export MATOPT_BENCH_COMMIT=$(cat "$bundle/commit" 2>/dev/null || echo unknown)
   if "$want" -m venv --without-pip "$venv"; then
     python=$venv/bin/python
     site=$("$python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
