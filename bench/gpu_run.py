@@ -12,6 +12,7 @@ full CPU run keeps.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -106,8 +107,13 @@ def child(name: str, extra: tuple[str, ...], args, out: Path, cap: float) -> Res
 
 
 def _stop(process: subprocess.Popen) -> None:
-    """SIGTERM to the case's whole process group (its daemons and their workers), then KILL."""
+    """SIGTERM to the case's process group and every process below it (a private daemon of
+    ``matopt demo`` runs in a session of its own), then SIGKILL to what is left."""
+    below = _descendants(process.pid)
     for sig, wait in ((signal.SIGTERM, 20), (signal.SIGKILL, 10)):
+        for pid in below:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
         try:
             os.killpg(process.pid, sig)
             process.wait(wait)
@@ -116,6 +122,15 @@ def _stop(process: subprocess.Popen) -> None:
             return
         except subprocess.TimeoutExpired:
             continue
+
+
+def _descendants(pid: int) -> list[int]:
+    found, todo = [], [pid]
+    while todo:
+        for child in common.children(todo.pop()):
+            found.append(child)
+            todo.append(child)
+    return found
 
 
 def section(results: list[Result], out: Path, head: dict, done: bool) -> str:
