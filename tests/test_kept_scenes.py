@@ -198,13 +198,14 @@ def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tm
 def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_losses(make):
     """The kept scene keeps the frozen iteration's recording and the integrator it was made
     with: later jobs of the same structure trace nothing at their iteration 0 (their notes and
-    status say so) and follow the first job's losses. Dr.Jit now and then finds a restored
-    scene's inputs laid out otherwise and records once more, so of three later jobs at least
-    two replay, and none records more than once."""
+    status say so) and follow the first job's losses. Here each job's reference resizes the
+    film, which the kept scene puts back, and Dr.Jit now and then lays out a film just resized
+    otherwise and records once more: of four later jobs at least two replay, and none records
+    more than once."""
     engine, settings = make
     first = _run(engine, "a", settings())
     replayed = 0
-    for name in ("b", "c", "d"):
+    for name in ("b", "c", "d", "e"):
         engine.start(name, settings(), None)
         opt = engine.runs[name].opt
         again = [engine.step(name, 1).records[0].loss for _ in range(4)]
