@@ -75,6 +75,8 @@ class Settings:
     seeds: int = 0             # real_scenes: seeds (0: 3)
     tables: tuple[str, ...] = ()  # real_scenes: the tables run (empty: all)
     defaults_only: bool = False  # real_scenes: the plain loop and the defaults, nothing else
+    cost_only: bool = False    # calibration: the standard errors' cost alone
+    deadline: float = 0.0      # real_scenes: epoch seconds by which to end (0: none)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -472,13 +474,17 @@ def mib(n: float) -> str:
 
 
 def git_revision() -> str:
-    """The commit the run measured, marked dirty when the daemon's code differs from it."""
+    """The commit the run measured, marked dirty when the daemon's code differs from it; where
+    the tree is a copy without git (a GPU machine), what bench/gpu.sh recorded
+    (MATOPT_BENCH_COMMIT)."""
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True,
                              capture_output=True, timeout=10).stdout.strip()
+        if not rev:
+            return os.environ.get("MATOPT_BENCH_COMMIT", "unknown")
         dirty = subprocess.run(["git", "status", "--porcelain", "--", "daemon", "proto"],
                                cwd=ROOT, text=True, capture_output=True,
                                timeout=10).stdout.strip()
         return rev + (" (daemon/ or proto/ modified)" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return os.environ.get("MATOPT_BENCH_COMMIT", "unknown")

@@ -279,7 +279,10 @@ def has_choices() -> bool:
 
 # -- the runs ---------------------------------------------------------------------------------
 
-def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) -> list[Run]:
+def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
+            deadline: float = 0.0) -> list[Run]:
+    """The table's runs; with a ``deadline`` (epoch seconds), a seed after the first only
+    when the time it took fits before it."""
     client, variant = server.client, server.variant
     prep = prepare(client, table, p, settings)
     runs: list[Run] = []
@@ -293,7 +296,13 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
               f"{run.per_iteration:.3f} s/it, worst final "
               f"{max(run.final[k] for k in table.targets):.4f}", flush=True)
 
+    seeds_began = time.time()
+
     for seed in range(p.seeds):
+        if seed and deadline and time.time() + (time.time() - seeds_began) / seed > deadline:
+            print(f"bench: real_scenes {table.name}: {seed} of {p.seeds} seed(s), the next "
+                  "would pass the time cap", flush=True)
+            break
         # The plain preset beside them, in turn, for its errors (its cost: equal_work)
         runs_ = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
                  lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
@@ -448,17 +457,29 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     if unknown:
         raise ValueError(f"--tables: no table {', '.join(sorted(unknown))} (there are "
                          f"{', '.join(t.name for t in TABLES)})")
-    for table in TABLES:
-        if settings.tables and table.name not in settings.tables:
-            continue
+    chosen = [t for t in TABLES if not settings.tables or t.name in settings.tables]
+    per_seed = 30.0  # seconds a table's seed took last (with its preparation): a floor
+    for k, table in enumerate(chosen):
         began = time.perf_counter()
+        # With a time cap (run.py --gpu), each table left gets an equal share of what is left,
+        # and one whose first seed would not end before the cap is not begun.
+        deadline = (time.time() + (settings.deadline - time.time()) / (len(chosen) - k)
+                    if settings.deadline else 0.0)
+        if settings.deadline and settings.deadline - time.time() < per_seed:
+            result.targets.append(Target(f"{table.name}: ran", "skipped: the time cap", None))
+            continue
         try:
-            runs = measure(table, p, settings, server)
+            runs = measure(table, p, settings, server, deadline)
         except Exception as exc:  # noqa: BLE001 - a failed table is a figure too
             result.targets.append(Target(f"{table.name}: ran",
                                          f"FAILED: {type(exc).__name__}: {exc}", False))
             continue
         result.targets += targets(table, p, runs)
+        ran = len({r.seed for r in runs if r.method == "daemon"})
+        per_seed = max(per_seed, (time.perf_counter() - began) / max(1, ran))
+        if ran < p.seeds:
+            result.targets.append(Target(f"{table.name}: seeds", f"{ran} of {p.seeds}: the "
+                                         "next would not have fit the time cap", None))
         result.lines += ["", f"**{table.name}** (`{table.path}`, integrator "
                              f"`{table.integrator}`; plain loop: {table.plain_spp} spp"
                              + (f", rates {table.plain_rates}" if table.plain_rates else "")

@@ -36,9 +36,10 @@ sys.path.insert(0, str(HERE))
 os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 
 import common  # noqa: E402
+import gpu_run  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
-CASES = ["overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
+CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
          "grids", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
          "thesis_tables", "real_scenes", "calibration"]
@@ -128,7 +129,9 @@ def summary(results: list[Result], settings: Settings, info, seconds: float,
         "Run it: `python bench/run.py` (the full run; it also rewrites docs/benchmarks.md) or "
         "`python bench/run.py --quick` (a smoke run of reduced cases, a few minutes); "
         "`--out DIR` writes elsewhere, `--only CASE ...` runs some cases, `--thesis-size` runs "
-        "thesis_tables at the thesis's image size (256 px: a GPU's work). It starts a daemon "
+        "thesis_tables at the thesis's image size (256 px: a GPU's work), `--gpu` the figures "
+        "owed on a GPU within one short loan of a machine (docs/developing.md, \"A GPU run\"; "
+        "its section, spliced in with `--splice`, outlives a full run). It starts a daemon "
         "per case on a loopback port (the renderer in its worker processes, the API in the "
         "daemon's own: CPU figures name which), uses the GPU when that daemon reports a CUDA "
         "variant, and needs matplotlib (`pip install 'matopt-mitsuba[plot]'`). The cases are the "
@@ -180,7 +183,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--defaults-only", action="store_true",
                    help="real_scenes: only the plain loop and the daemon's defaults per seed "
                    "(no choices turned off, no plain preset, no equal-work pairs)")
+    p.add_argument("--cost-only", action="store_true",
+                   help="calibration: only the cost of the standard errors")
+    p.add_argument("--deadline", type=float, default=0.0, help=argparse.SUPPRESS)
+    p.add_argument("--result-json", type=Path, help=argparse.SUPPRESS)  # for --gpu's children
+    p.add_argument("--gpu", action="store_true",
+                   help="the figures owed on a GPU, each case with a time cap, within --budget "
+                   "(bench/gpu_run.py); writes --out only")
+    p.add_argument("--budget", type=float, default=gpu_run.BUDGET, help="--gpu: seconds in all")
+    p.add_argument("--cap-scale", type=float, default=1.0,
+                   help="--gpu: each case's time cap times this (a check on a slower machine)")
+    p.add_argument("--splice", type=Path, metavar="DIR",
+                   help="copy a --gpu run's output DIR to bench/results/gpu/ and its section "
+                   "into docs/benchmarks.md")
     args = p.parse_args(argv)
+    if args.splice:
+        return gpu_run.splice(args.splice, DOCS)
+    if args.gpu:
+        if args.out == HERE / "results":
+            args.out = gpu_run.RESULTS
+        return gpu_run.run_all(args)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
         clear(args.out)
@@ -189,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
                         film, args.iterations, args.seeds, tuple(args.tables),
-                        args.defaults_only)
+                        args.defaults_only, args.cost_only, args.deadline)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
@@ -204,10 +226,15 @@ def main(argv: list[str] | None = None) -> int:
     load = (load_before, os.getloadavg()[0])
     text = summary(results, settings, info, seconds, load)
     (settings.out / "summary.md").write_text(text)
+    if args.result_json:
+        gpu_run.save_result(results[0], info, args.result_json)
     print(f"bench: wrote {settings.out / 'summary.md'} ({seconds / 60:.1f} min)", file=sys.stderr)
     if not (args.quick or args.only or args.thesis_size) and settings.out == (HERE / "results").resolve():
         links = os.path.relpath(settings.out, DOCS.parent) + "/"
-        DOCS.write_text(summary(results, settings, info, seconds, load, links, HISTORY.name))
+        # The GPU section (--splice) stays: this run does not measure it.
+        gpu = gpu_run.current(DOCS.read_text()) if DOCS.exists() else ""
+        DOCS.write_text(summary(results, settings, info, seconds, load, links, HISTORY.name)
+                        + ("\n" + gpu if gpu else ""))
         print(f"bench: copied the summary to {DOCS}", file=sys.stderr)
     return 0
 

@@ -5,7 +5,8 @@ iteration: render, loss, backward, Adam step).
 This is what a long-running daemon is for: its renderer worker process has imported Mitsuba,
 initialised the variant and compiled the kernels (at its start, and by the job that ran the
 scene before), and keeps them between jobs, with the last job's scene (engine/kept_scenes.py):
-the next job on it is not loaded again, and its kernels keep their instance ids. What it does
+the next job on it is not loaded again, its kernels keep their instance ids, and its frozen
+iteration replays the recording the job before made (nothing traced). What it does
 per job is less than what the fresh process does after its imports (load the scene, run the
 iteration): the iteration, plus the way there: CreateJob, the scheduler's pick and the engine
 call in the worker. Both sides pay the iteration itself, so the ratio is bounded by (setup +

@@ -52,7 +52,7 @@ def make(service, tmp_path):
         return api.JobSettings(
             scene, [api.ReferenceInput(0, ref, "ref.exr")],
             [api.ParameterSetting(k, 0.1, 0.0, 1.0, start) for k in (RED, GREEN)],
-            iterations=20, spp=4, schedule="constant", **kw)
+            iterations=20, schedule="constant", **{"spp": 4, **kw})
 
     return engine, settings
 
@@ -193,3 +193,61 @@ def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tm
     finally:
         stubs.close()
         daemon.stop()
+
+
+def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_losses(make):
+    """The kept scene keeps the frozen iteration's recording and the integrator it was made
+    with: later jobs of the same structure trace nothing at their iteration 0 (their notes and
+    status say so) and follow the first job's losses. Here each job's reference resizes the
+    film, which the kept scene puts back, and Dr.Jit now and then lays out a film just resized
+    otherwise and records once more: of four later jobs at least two replay, and none records
+    more than once."""
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    replayed = 0
+    for name in ("b", "c", "d", "e"):
+        engine.start(name, settings(), None)
+        opt = engine.runs[name].opt
+        again = [engine.step(name, 1).records[0].loss for _ in range(4)]
+        frozen = next(s for s in opt.status() if s.name == "frozen")
+        assert opt.group.taken and opt.group.recordings <= 1
+        assert "recording from a job before is taken over" in frozen.why
+        if opt.group.recordings == 0:
+            replayed += 1
+            assert opt.said == ["frozen: iteration 0 replayed the recording a job before made "
+                                "on this scene: nothing traced or recorded"]
+        engine.release(name)
+        np.testing.assert_allclose(again, first, rtol=1e-6)
+    assert replayed >= 2
+
+
+def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_alone(make):
+    """A recording is replayed only for its own structure: a job at other spp on the kept
+    scene records again (its notes say why) and follows the losses it has on a new load."""
+    engine, settings = make
+    alone = _run(engine, "spp8", settings(spp=8))
+    _run(engine, "a", settings())  # leaves its spp-4 recording on the kept scene
+    engine.start("spp8-again", settings(spp=8), None)
+    opt = engine.runs["spp8-again"].opt
+    again = [engine.step("spp8-again", 1).records[0].loss for _ in range(4)]
+    assert opt.said[0] == "frozen: iteration 0 recorded again (spp 4 -> 8)"
+    engine.release("spp8-again")
+    np.testing.assert_allclose(again, alone, rtol=1e-6)
+
+
+def test_the_next_job_against_the_same_reference_reads_it_once(make, monkeypatch):
+    """The kept scene holds the last job's reference images as read: a job against the same
+    file does not decode it again, one against another file does."""
+    from matoptd.engine import images
+    engine, settings = make
+    first = _run(engine, "a", settings())
+    read = []
+    load = images.load_reference
+    monkeypatch.setattr(images, "load_reference", lambda r, blob: read.append(r.name)
+                        or load(r, blob))
+    assert _run(engine, "b", settings()) == pytest.approx(first, rel=1e-6)
+    assert read == []
+    other = settings()
+    other.references[0] = api.ReferenceInput(0, other.references[0].sha256, "again.exr")
+    _run(engine, "c", other)
+    assert read == ["again.exr"]

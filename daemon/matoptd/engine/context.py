@@ -57,6 +57,12 @@ class Context:
         return self._loop.renders.integrator
 
     @property
+    def shelf(self) -> dict[str, object]:
+        """What the job takes over from the jobs before on its scene and leaves for the next
+        (kept_scenes.Loaded.shelf; empty for a scene loaded for the job alone)."""
+        return self._loop.shelf
+
+    @property
     def loss(self):
         """The job's loss (losses.py)."""
         return self._loop.loss

@@ -19,6 +19,16 @@ What keeps a replay equal to the unfrozen iteration:
 
 A structure here: the spp, the integrator object, the films' sizes. When it changes, the old
 recordings are dropped and the job's notes say that it recorded again and why.
+
+The frozen function and its structure stay on a kept scene's shelf (kept_scenes.py) for the
+next job on it: with the same integrator (the shelf's) and structure, that job's iteration 0
+replays the recording instead of tracing and recording again.
+
+On a scene just loaded, each sensor group's first call runs unfrozen: a render leaves state in
+the scene (its film's, its sampler's) that is among the recording's inputs, so a recording
+made before any render is laid out as no later call is, and would never replay. The first
+event of such a job comes after an unfrozen iteration rather than a recording (which costs
+about 2.5 of them).
 """
 
 from __future__ import annotations
@@ -51,14 +61,28 @@ def unfreezable(integrator: str, kinds: dict[str, str]) -> str:
     return ""
 
 
-def _group_loss(scene, params, integrator, sensors, seeds, targets, weights, spp, divisor,
+class _Holder:
+    """The job's SceneParameters, behind an object that stays the same from job to job.
+
+    Dr.Jit cannot look into a SceneParameters, so a recording's key holds the object itself:
+    a new job's (a new traversal) would record again, or replay by chance where Python gave
+    the new object the old one's address. Its values reach the recording through the scene,
+    which is traversed; the object only names what the render differentiates."""
+
+    __slots__ = ("params",)
+
+    def __init__(self) -> None:
+        self.params = None
+
+
+def _group_loss(scene, holder, integrator, sensors, seeds, targets, weights, spp, divisor,
                 fn, clamp, keep):
     """The loss of a group of sensors (their sum over ``divisor``), back-propagated to the
     scene's parameters, and each sensor's renders, detached, where ``keep`` (for a choice
     that reads them: eta by differences); the function that is frozen."""
     total, kept = 0, []
     for sensor, drawn, target, weight in zip(sensors, seeds, targets, weights):
-        images = render_images(scene, params, integrator, sensor, spp, drawn)
+        images = render_images(scene, holder.params, integrator, sensor, spp, drawn)
         total += image_loss(fn, clamp, images, target, weight)
         if keep:
             kept.append([dr.detach(img) for img in images])
@@ -91,12 +115,19 @@ class FrozenLoss:
 
     def __init__(self, ctx) -> None:
         self.ctx = ctx
-        self.fn = dr.freeze(_group_loss, warn_after=1000)
+        # (the frozen function, its structure, its holder) of a job before on this scene
+        taken = ctx.shelf.get("frozen")
+        self.taken = taken is not None  # a recording made by a job before may replay
+        self.fn, self.structure, self.holder = taken or (
+            dr.freeze(_group_loss, warn_after=1000), None, _Holder())
         self.images = dr.freeze(_detached_images, warn_after=1000)
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
-        self.structure: tuple | None = None
         self.stale = False    # the leaves hold a gradient not (yet) carried on
-        self.recordings = 0   # recordings made (Dr.Jit's count, over every structure)
+        self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
+        self.replayed = 0     # calls that replayed a recording (this job's or one taken)
+        # sensor groups rendered since the scene was loaded (unfrozen, their first time)
+        self.rendered: set[tuple[int, ...]] = set()
+        ctx.shelf["frozen"] = (self.fn, self.structure, self.holder)
 
     def leaf(self, key: str, value):
         """v as the scene holds it: detached, gradients on (the recording's input)."""
@@ -131,32 +162,40 @@ class FrozenLoss:
                 self.fn.clear()
                 self.images.clear()
             self.structure = structure
+            self.ctx.shelf["frozen"] = (self.fn, structure, self.holder)
         if self.stale:  # a loss taken without a step (the last iteration, a skipped one)
             for _, leaf in self.pairs.values():
                 dr.clear_grad(leaf)
         refs = [ctx.references[sensor] for _, sensor in group]
         before = self.fn.n_recordings
+        if not (self.recordings or self.replayed):
+            # The job's start leaves young garbage; while it lives, Dr.Jit sees the scene's
+            # inputs laid out otherwise and records anew (about one job in five, measured).
+            gc.collect(1)
+        sensors = tuple(s for _, s in group)
+        fn = self.fn if self.taken or sensors in self.rendered else _group_loss
+        self.rendered.add(sensors)
         keep = ctx.keeps_images
-        total, images = call(
-            self.fn, ctx.scene, ctx.params, ctx.integrator, tuple(s for _, s in group),
-            [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
-            [r.image for r in refs], [r.weight for r in refs], ctx.spp, float(divisor),
-            ctx.loss.fn, bool(ctx.settings.clamp), keep)
+        self.holder.params = ctx.params
+        try:
+            total, images = call(
+                fn, ctx.scene, self.holder, ctx.integrator, sensors,
+                [[dr.opaque(mi.UInt32, s) for s in ctx.seeds(n)] for n, _ in group],
+                [r.image for r in refs], [r.weight for r in refs], ctx.spp, float(divisor),
+                ctx.loss.fn, bool(ctx.settings.clamp), keep)
+        finally:
+            self.holder.params = None  # the job's, not the shelf's to keep
         if keep:
             ctx.images.update({sensor: kept for (_, sensor), kept in zip(group, images)})
-        self.recordings += self.fn.n_recordings - before
+        if fn is self.fn:
+            made = self.fn.n_recordings - before
+            if self.taken and not (self.recordings or self.replayed or made):
+                ctx.note(f"frozen: iteration {ctx.iteration} replayed the recording a job "
+                         "before made on this scene: nothing traced or recorded")
+            self.recordings += made
+            self.replayed += not made
         self.stale = True
         return total
-
-    def render(self, scene, params, integrator, sensor: int, spp: int, seeds: list[int]
-               ) -> list:
-        """``renders.render_images``, detached, replayed (a choice's renders at other values,
-        set outside: the scene is an argument, read afresh at each replay)."""
-        before = self.images.n_recordings
-        out = call(self.images, scene, params, integrator, sensor, spp,
-                   [dr.opaque(mi.UInt32, s) for s in seeds])
-        self.recordings += self.images.n_recordings - before
-        return out
 
     def backward(self, extra) -> None:
         """The leaves' gradients on to Adam's variables through the maps, with the gradient
@@ -170,3 +209,13 @@ class FrozenLoss:
             dr.enqueue(dr.ADMode.Backward, extra)
         dr.traverse(dr.ADMode.Backward)
         self.stale = False
+
+    def render(self, scene, params, integrator, sensor: int, spp: int, seeds: list[int]
+               ) -> list:
+        """``renders.render_images``, detached, replayed (a choice's renders at other values,
+        set outside: the scene is an argument, read afresh at each replay)."""
+        before = self.images.n_recordings
+        out = call(self.images, scene, params, integrator, sensor, spp,
+                   [dr.opaque(mi.UInt32, s) for s in seeds])
+        self.recordings += self.images.n_recordings - before
+        return out

@@ -158,12 +158,22 @@ def choose(scene: mi.Scene, selected: list[str]) -> Chosen:
     return replace("prb", why, because)
 
 
-def make(chosen: Chosen, max_depth: int | None = None) -> mi.Integrator:
-    """The integrator as chosen, at ``max_depth`` (default: the chosen depth)."""
+def make(chosen: Chosen, max_depth: int | None = None,
+         shelf: dict[str, object] | None = None) -> mi.Integrator:
+    """The integrator as chosen, at ``max_depth`` (default: the chosen depth); the one on
+    ``shelf`` (a kept scene's) when it was made with the same properties, else a new one put
+    there: a frozen recording replays only with the integrator it was made with."""
     props = {"type": chosen.name, **chosen.props}
     if chosen.has_depth:
         props["max_depth"] = chosen.max_depth if max_depth is None else max_depth
-    return mi.load_dict(props)
+    key = repr(sorted(props.items()))
+    made = (shelf or {}).get("integrator")
+    if made is not None and made[0] == key:
+        return made[1]
+    integrator = mi.load_dict(props)
+    if shelf is not None:
+        shelf["integrator"] = (key, integrator)
+    return integrator
 
 
 def medium_notes(scene: mi.Scene, selected: list[str]) -> list[str]:

@@ -7,6 +7,11 @@ on disk, misses and the job's first iteration compiles again (0.15-1.5 s on 2 CP
 the Cornell box, against 20 ms when the loaded scene is taken again). Keeping the scene also
 saves the load itself.
 
+A kept scene also keeps what a job made for it that the next job can use as it is
+(``shelf``): its integrator and its frozen iteration's recordings (engine/frozen.py). The next
+job with the same integrator and structure replays the recording from its iteration 0 rather
+than tracing and recording the iteration again, which is most of a small iteration's cost.
+
 A kept scene is never shared: ``take`` hands it to one job, and only ``give_back`` (at that
 job's release) keeps it again, with every value a job can set put back as loaded. At most one
 is kept, and one on another scene is dropped before a job loads its own, so that no idle
@@ -16,7 +21,7 @@ scene's instances swell another job's kernels.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -34,6 +39,9 @@ class Loaded:
     scene: mi.Scene
     key: tuple
     values: dict[str, object]
+    # What jobs on this scene leave for the next (the integrator, the frozen function), by
+    # name; it goes with the scene.
+    shelf: dict[str, object] = field(default_factory=dict)
 
     @classmethod
     def of(cls, scene: mi.Scene, key: tuple) -> Loaded:

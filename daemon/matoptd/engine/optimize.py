@@ -78,8 +78,11 @@ class Optimization:
     def __init__(self, scene: mi.Scene, settings: api.JobSettings,
                  references: dict[int, Reference], choices: list[Choice] | None = None,
                  checkpoint: bytes | None = None, initial: dict[str, np.ndarray] | None = None,
-                 truth: dict[str, np.ndarray] | None = None) -> None:
+                 truth: dict[str, np.ndarray] | None = None,
+                 shelf: dict[str, object] | None = None) -> None:
         self.settings = settings
+        # A kept scene's integrator and recordings (kept_scenes.Loaded.shelf), taken and left
+        self.shelf = shelf if shelf is not None else {}
         self.loss = LOSSES[settings.loss]
         self.spp = settings.spp
         self.chosen = integrator.choose(scene, [p.key for p in settings.parameters])
@@ -117,7 +120,7 @@ class Optimization:
         begun = self.hooks.begin()
         if begun is not None:
             self.chosen.max_depth, self.chosen.depth_origin = begun.max_depth, begun.origin
-        self.renders.integrator = integrator.make(self.chosen)
+        self.renders.integrator = integrator.make(self.chosen, shelf=self.shelf)
         self.integrator_reason = self.chosen.reason()
         self.group = next(filter(None, (c.group_loss(self.ctx) for c in self.active)), None)
         if self.group is not None:

@@ -190,14 +190,16 @@ class MitsubaEngine:
         for c in chosen:
             loaded = c.prepare_scene(loaded, loading)
         notes = loading.notes
-        refs = _references(loaded, settings, self._blob_path, notes)
+        shelf = held.shelf if loaded is held.scene else None  # what jobs before left
+        refs = _references(loaded, settings, self._blob_path, notes, shelf)
         listed = {i.key: i for i in parameters.describe(mi.traverse(loaded))}
         try:
             truth = {k: self._values(v, f"ground truth of '{k}'")
                      for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
-            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
+            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth,
+                               shelf)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
@@ -360,21 +362,25 @@ def _film_key(params: mi.SceneParameters, sensor: mi.Sensor) -> str | None:
     return key if key in params else None
 
 
-def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[str]
-                ) -> dict[int, Reference]:
+def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[str],
+                shelf: dict | None = None) -> dict[int, Reference]:
     """Reads each reference (with its mask) and sizes its sensor's film: height from
     ``settings.film_height`` (or the film's own), width from the reference's aspect ratio. Each
     sensor keeps its own size. Masked and NaN/Inf pixels weigh 0 in every loss; the notes
-    count them."""
+    count them. A kept scene's ``shelf`` holds the last job's images as read, so the next job
+    against the same files does not decode them again."""
     params = mi.traverse(scene)
     sensors = scene.sensors()
     # Sizes before any resize: sensors may share one film, which the first resize changes
     # for all of them, and each sensor's note compares with what its scene declared.
     declared = [tuple(int(x) for x in s.film().crop_size()) for s in sensors]
     refs = {}
+    read = (shelf or {}).get("references", {})
+    kept = {}
     for r in sorted(settings.references, key=lambda r: r.sensor):
         index, name = r.sensor, r.name
-        picture, weight, said = images.load_reference(r, blob)
+        key = (r.sha256, name, r.alpha_mask, r.mask_sha256, r.mask_name)
+        picture, weight, said = kept[key] = read.get(key) or images.load_reference(r, blob)
         notes += said
         film = sensors[index].film().crop_size()
         width, height = api.reference_film(settings.film_height or declared[index][1],
@@ -397,6 +403,8 @@ def _references(scene: mi.Scene, settings: api.JobSettings, blob, notes: list[st
         weight = np.repeat(weight[..., None], 3, axis=2)
         refs[index] = Reference(mi.TensorXf(picture), None if whole else mi.TensorXf(weight),
                                 r.name)
+    if shelf is not None:
+        shelf["references"] = kept
     return refs
 
 

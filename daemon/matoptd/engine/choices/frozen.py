@@ -44,7 +44,13 @@ class Frozen(Choice):
                     "tracing per iteration")
 
     def group_loss(self, ctx):
-        return None if self.reason else frozen.FrozenLoss(ctx)
+        if self.reason:
+            return None
+        group = frozen.FrozenLoss(ctx)
+        if group.taken:
+            self.why += ("; the scene's recording from a job before is taken over (replayed "
+                         "from iteration 0 when the spp, integrator and films are the same)")
+        return group
 
     def notes(self) -> list[str]:
         return [f"frozen: {self.why}"]

@@ -1,0 +1,97 @@
+"""``bench/run.py --gpu`` and ``--splice`` (bench/gpu_run.py): a case's result goes from its
+child process to the section intact; the section lands in the results page once, replaces
+itself on the next splice, and outlives a full CPU run's rewrite of the page; a case past its
+cap is stopped with its daemons and reported."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+
+import gpu_run  # noqa: E402
+from common import Result, Target  # noqa: E402
+
+HEAD = {"when": "2026-11-27 15:00 UTC", "quick": False, "budget": 510, "scale": 1.0,
+        "card": "NVIDIA H100 80GB HBM3, 81559 MiB, 570.86", "variant": "cuda_ad_rgb",
+        "device": "CUDA device 0", "version": "0.1.0", "minutes": 7.5}
+
+
+def _result(out: Path, figure: str) -> Result:
+    csv = out / "cases" / "demo" / "demo.csv"
+    csv.parent.mkdir(parents=True, exist_ok=True)
+    csv.write_text("run,seconds\n0,1.5\n")
+    return Result("demo", "The demo's time", [Target("demo time", figure, True)],
+                  ["- later runs: 1.5 s"], [csv], 12.0)
+
+
+def test_a_result_comes_back_from_its_child_as_it_was(tmp_path):
+    result = _result(tmp_path, "1.5 s")
+    info = SimpleNamespace(variant="cuda_ad_rgb", device="CUDA device 0", version="0.1.0")
+    gpu_run.save_result(result, info, tmp_path / "result.json")
+    back, got = gpu_run.load_result(tmp_path / "result.json")
+    assert back == result
+    assert got == {"variant": "cuda_ad_rgb", "device": "CUDA device 0", "version": "0.1.0"}
+
+
+def test_the_section_is_spliced_once_replaced_and_kept_by_a_full_run(tmp_path, monkeypatch):
+    out = tmp_path / "back" / "gpu"
+    monkeypatch.setattr(gpu_run, "RESULTS", tmp_path / "results" / "gpu")
+    docs = tmp_path / "benchmarks.md"
+    docs.write_text("# matopt benchmarks\n\n## Targets\n")
+    for figure in ("1.5 s", "1.4 s"):
+        (out / "summary.md").parent.mkdir(parents=True, exist_ok=True)
+        (out / "summary.md").write_text(gpu_run.section([_result(out, figure)], out, HEAD, True))
+        gpu_run.splice(out, docs)
+    page = docs.read_text()
+    assert page.count(gpu_run.BEGIN) == 1 and page.count(gpu_run.END) == 1
+    assert "| demo | demo time | 1.4 s | met |" in page and "1.5 s |" not in page
+    assert "Card: NVIDIA H100 80GB HBM3" in page and page.startswith("# matopt benchmarks")
+    assert "[cases/demo/demo.csv](../bench/results/gpu/cases/demo/demo.csv)" in page
+    assert (tmp_path / "results" / "gpu" / "cases" / "demo" / "demo.csv").exists()
+    # A full CPU run writes the page anew from its own summary and appends the kept section.
+    rewritten = "# matopt benchmarks\n\n## Targets\n(new)\n" + "\n" + gpu_run.current(page)
+    assert gpu_run.current(rewritten) == gpu_run.current(page) != ""
+
+
+def test_splice_refuses_a_folder_that_is_not_a_gpu_run(tmp_path):
+    (tmp_path / "summary.md").write_text("# matopt benchmarks\n")
+    with pytest.raises(SystemExit, match="not the output of run.py --gpu"):
+        gpu_run.splice(tmp_path, tmp_path / "benchmarks.md")
+
+
+def test_a_case_past_its_cap_is_stopped_and_reported(tmp_path, monkeypatch):
+    """The child (here a sleeper standing in for run.py) is stopped at its cap, whole."""
+    sleeper = tmp_path / "sleeper.py"
+    grandchild = tmp_path / "grandchild.pid"
+    sleeper.write_text("import subprocess, sys, time\n"
+                       "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'],"
+                       " start_new_session=True)\n"
+                       f"open({str(grandchild)!r}, 'w').write(str(p.pid))\n"
+                       "time.sleep(60)\n")
+    monkeypatch.setattr(gpu_run, "__file__", str(sleeper.with_name("gpu_run.py")))
+    sleeper.rename(sleeper.with_name("run.py"))
+    args = SimpleNamespace(quick=False, variant="", thesis_repo=None)
+    began = time.perf_counter()
+    result = gpu_run.child("demo", (), args, tmp_path / "demo", 3)
+    assert time.perf_counter() - began < 30
+    assert result.targets == [Target("case ran", "FAILED: stopped at its cap of 3 s", False)]
+    pid = int(grandchild.read_text())  # in a session of its own, as matopt demo's daemon
+    for _ in range(50):
+        if not Path(f"/proc/{pid}").exists() or "Z" in _state(pid):
+            break
+        time.sleep(0.1)
+    assert not Path(f"/proc/{pid}").exists() or "Z" in _state(pid)
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "Z"
