@@ -7,6 +7,7 @@ directory. A job's ``Optimization`` stays in memory between ``start`` and ``rele
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import gc
 import hashlib
@@ -25,7 +26,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import (choices, diagnosis, images, parameters, scene as scenes, scene_export,
+from . import (choices, diagnosis, images, parameters, probes, scene as scenes, scene_export,
                uncertainty, verdicts)
 from .integrator import medium_notes
 from .kept_scenes import KeptScenes, Loaded
@@ -197,9 +198,16 @@ class MitsubaEngine:
                      for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
+            prepared = copy.deepcopy(chosen) if settings.starts > 1 else chosen
             opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
+        probed: list[api.IterationRecord] = []
+        if checkpoint is None and settings.starts > 1:
+            # Each probe's loop with the choices as prepared for this scene, fresh.
+            opt, probed = probes.run(opt, lambda point: Optimization(
+                loaded, settings, refs, copy.deepcopy(prepared), None, {**initial, **point},
+                truth), notes)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
         changed = [opt.chosen.changed] if opt.chosen.changed else []  # the scene's integrator
         said = [line for c in opt.active for line in c.notes()]  # once, at the start
@@ -215,8 +223,12 @@ class MitsubaEngine:
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
                              shapes, kinds, settings.max_samples,
                              held if loaded is held.scene else None)
-        return api.Started(opt.progress.iteration, opt.integrator_name, opt.integrator_reason,
-                           list(opt.renders.references), opt.notes, shapes, kinds, opt.status())
+        p = opt.progress
+        return api.Started(p.iteration, opt.integrator_name, opt.integrator_reason,
+                           list(opt.renders.references), opt.notes, shapes, kinds, opt.status(),
+                           api.Progress(probed, False, "", p.best.iteration, p.best.loss,
+                                        p.elapsed, _counters(opt), opt.status())
+                           if probed else None)
 
     def _run(self, job: str) -> Run:
         try:
@@ -231,10 +243,7 @@ class MitsubaEngine:
         done, reason = False, ""
         for _ in range(max(1, n)):
             s = opt.step()
-            records.append(api.IterationRecord(
-                s.iteration, opt.progress.elapsed, s.loss,
-                {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error, s.gains, s.spp))
+            records.append(probes.iteration_record(opt, s))
             if s.done:
                 done, reason = True, s.stop_reason
                 break

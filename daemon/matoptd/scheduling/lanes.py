@@ -18,6 +18,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from .. import engine_api as api
 from ..errors import DiskFull, Internal, NotFound, Unavailable, UserError
 from ..logs import about
 from ..records import JobRecord, Phase, RESUME_PENDING
@@ -214,16 +215,22 @@ class Lane:
             record.notes.extend(n for n in started.notes if n not in record.notes)
             if record.resumed_from == RESUME_PENDING:
                 record.resumed_from = (f"checkpoint at iteration {started.iteration}"
-                                       if started.iteration else "from the start")
+                                       if started.iteration and started.probed is None
+                                       else "from the start")
             # The first checkpoint after a load is due after CHECKPOINT_ITERATIONS, however
             # fast they are.
             record.checkpoint = started.iteration
             self.scheduler.jobs[record.name].checkpointed = -math.inf
             self.store.truncate_history(record.name, started.iteration)  # they run again
+        if started.probed is not None:
+            # The best probe's iterations are the job's first: kept at once, with a
+            # checkpoint, so that the probes never run again.
+            self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
+            self._progressed(record, started.probed)
         self._done(action, record=record)
 
-    def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
-        progress = engine.step(record.name, action.n)
+    def _progressed(self, record: JobRecord, progress: api.Progress) -> None:
+        """Keeps iterations a worker ran and tells the job's watchers."""
         self.store.add_iterations(record.name, progress.records)
         with self.state.lock:
             last = progress.records[-1]
@@ -234,10 +241,16 @@ class Lane:
             record.choices = list(progress.choices)
             record.updated = self.state.clock.time()
             self.store.put_job(record)
-            job, snapshot = self.scheduler.jobs[record.name], record.snapshot()
+            snapshot = record.snapshot()
         # The job after its iterations: clients show its best_iteration/best_loss rather than
         # compute their own (for dual_buffer the best is a windowed mean, not a record's loss).
         self.state.events.publish(record.name, [*progress.records, snapshot])
+
+    def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        progress = engine.step(record.name, action.n)
+        self._progressed(record, progress)
+        with self.state.lock:
+            job = self.scheduler.jobs[record.name]
         if progress.done:
             self._end(engine, record, action, Phase.SUCCEEDED, progress.stop_reason,
                       len(progress.records))
