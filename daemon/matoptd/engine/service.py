@@ -294,11 +294,14 @@ class MitsubaEngine:
             {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
         # One verdict per component, the diagnosis and the standard errors reconciled: what
-        # every surface shows.
-        said = verdicts.reconcile(shown, diagnosed, {})
+        # every surface shows; with the other basins the probes found, where starts were
+        # compared.
+        found, spans = opt.progress.probes, probes.spans(opt)
+        said = verdicts.several(verdicts.reconcile(shown, diagnosed, {}), found, spans)
         for r in results:
             e = estimates.get(r.which)
-            final = verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)) if e else said
+            final = said if not e else verdicts.several(
+                verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)), found, spans)
             r.standard_errors, r.gain_errors = final.errors, final.gains
         return api.Finished(results, said.notes + opt.said, _counters(opt))
 
@@ -317,7 +320,8 @@ class MitsubaEngine:
                 raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
             e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds,
                                     self.runs[run].shapes)[which]
-            said = verdicts.reconcile(e, diagnosis.Diagnosis(), {})
+            said = verdicts.several(verdicts.reconcile(e, diagnosis.Diagnosis(), {}),
+                                    opt.progress.probes, probes.spans(opt))
             return api.Estimated(said.errors, said.gains, said.notes)
         finally:
             self.release(run)

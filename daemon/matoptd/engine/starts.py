@@ -26,6 +26,9 @@ COLOURS = ("rgb", "texture")
 APART = 0.1
 # Losses within this many standard errors of their difference tie.
 TIE = 2.0
+# Losses this share apart are equal: probes that render alike on the same seeds differ by
+# rounding only.
+ROUNDING = 1e-6
 # A probe's ending loss is the mean of its last TAIL iterations (at least the loss's window).
 TAIL = 5
 
@@ -124,20 +127,24 @@ def ending(losses: list[float], window: int) -> tuple[float, float]:
 
 
 def best(probes: list[Probe]) -> Probe:
-    """The probe of the lowest ending loss (the first of equals: the given start)."""
-    return min(probes, key=lambda p: (p.loss if math.isfinite(p.loss) else math.inf, p.index))
+    """The probe of the lowest ending loss; the first of those equal to rounding (a millionth
+    of it), so that the given start wins a tie."""
+    finite = [p.loss for p in probes if math.isfinite(p.loss)]
+    if not finite:
+        return probes[0]
+    low = min(finite)
+    return next(p for p in probes if math.isfinite(p.loss) and p.loss <= low + ROUNDING * abs(low))
 
 
 def ties(probes: list[Probe]) -> list[Probe]:
     """The probes whose ending losses are within noise of the best one's: the best first.
-    Noise is TIE standard errors of the difference, and never less than a millionth of the
-    loss (probes that render alike on the same seeds end at the same loss to rounding)."""
+    Noise is TIE standard errors of the difference, and never less than ROUNDING."""
     top = best(probes)
     out = [top]
     for p in probes:
         if p is top or not math.isfinite(p.loss):
             continue
-        allowed = TIE * math.hypot(p.noise, top.noise) + 1e-6 * abs(top.loss)
+        allowed = TIE * math.hypot(p.noise, top.noise) + ROUNDING * abs(top.loss)
         if abs(p.loss - top.loss) <= allowed:
             out.append(p)
     return out

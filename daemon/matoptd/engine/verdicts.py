@@ -6,6 +6,10 @@ loss, say the images do not decide a value that a local fit still pins to +- a l
 verdict takes the more cautious: where either finds a component not decided, it is not
 determined (standard error +inf, with the reason), and the notes that gave it an interval
 go. Every surface (status, result, export, the clients) shows what this returns.
+
+A job that compared starts (JobSettings.starts) adds what no standard error can know: other
+basins. Where its probes ended at losses within noise of the best one's but at values outside
+each other's intervals, the component is not determined, its reason listing the answers.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import engine_api as api
+from . import starts
 from .diagnosis import Diagnosis
 
 if TYPE_CHECKING:  # uncertainty loads Mitsuba's integrators, which need a variant set
@@ -76,3 +81,26 @@ def _covers(verdict: api.StandardError | None, moved: np.ndarray) -> bool:
     """Whether a verdict's intervals are finite and at least as wide as the wander."""
     return (verdict is not None and bool(np.isfinite(verdict.error).all())
             and bool(np.all(moved <= WIDTH * np.asarray(verdict.error, dtype=np.float64))))
+
+
+def several(said: Verdicts, probes: list[starts.Probe], spans: dict[str, starts.Span]
+            ) -> Verdicts:
+    """The verdicts with every component on which the probes found several answers not
+    determined, the reason listing each answer and its probe's loss. A value without
+    per-component verdicts (a texture, a grid) gets a note instead."""
+    if len(probes) < 2:
+        return said
+    widths = {k: np.asarray(e.error, dtype=np.float64) for k, e in said.errors.items()}
+    errors, notes = dict(said.errors), list(said.notes)
+    for key, components in starts.several(probes, spans, widths, WIDTH).items():
+        had = errors.get(key)
+        if had is None or len(had.reading) != len(components):
+            notes += [f"{key}: {starts.reason(a)}" for a in components if a]
+            continue
+        error, reading = np.array(had.error, dtype=np.float32), list(had.reading)
+        reason = list(had.reason) or [""] * len(reading)
+        for c, answers in enumerate(components):
+            if answers:
+                error[c], reading[c], reason[c] = np.inf, "not_determined", starts.reason(answers)
+        errors[key] = api.StandardError(error, reading, reason)
+    return Verdicts(errors, said.gains, notes)
