@@ -17,7 +17,7 @@ from matoptd import engine_api as api
 from matoptd.engine import starts, verdicts
 from matoptd.engine.starts import Probe, Span
 
-from conftest import finished
+from conftest import finished, wait_state
 
 RGB = Span("rgb", 0.0, 1.0, np.array([0.5, 0.2, 0.3], np.float32))
 ROUGH = Span("scalar", 0.01, 1.0, np.array([0.3], np.float32))
@@ -177,6 +177,27 @@ def test_probes_that_end_alike_at_other_values_say_the_images_allow_several_answ
     assert reason.startswith("the images allow several answers: 0.3 (loss ")
     assert ", 0.5 (loss " in reason, reason
     assert list(seen.interval) == [pb.INTERVAL_TWO_SIDED] * 3, seen
+
+
+def test_a_job_paused_as_its_probes_run_keeps_them_and_their_verdict(stubs, quads):
+    """Paused at once, the job's probes finish in the call that loads it, and the checkpoint
+    the pause takes holds them: the resumed job runs none again, its history counts each
+    iteration once, and its result still says where the probes found several answers."""
+    scene, ref = quads
+    job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, references=[ref], iterations=30, spp=8, starts=2,
+        parameters=[pb.ParameterSpec(key=HIDDEN, initial_value=[0.3]),
+                    pb.ParameterSpec(key=SEEN, initial_value=[0.5] * 3)])))
+    stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
+    wait_state(stubs, job.name, (pb.JOB_STATE_PAUSED,))
+    stubs.jobs.ResumeJob(pb.ResumeJobRequest(name=job.name))
+    done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
+    assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
+    assert sum(n.startswith("probe 1 of 2") for n in done.notes) == 1, done.notes
+    assert [h.iteration for h in _history(stubs, job.name)] == list(range(30))
+    result = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
+    hidden = next(p for p in result.parameters if p.key == HIDDEN)
+    assert hidden.interval_reason[0].startswith("the images allow several answers: 0.3 ")
 
 
 def test_a_bad_start_that_one_probe_cannot_leave_is_left_for_a_better_one(stubs, quads):
