@@ -6,6 +6,8 @@ run through a daemon."""
 
 from __future__ import annotations
 
+import csv
+import json
 import math
 
 import numpy as np
@@ -151,21 +153,26 @@ SEEN, AT_BOUND, HIDDEN = ("seen.bsdf.reflectance.value", "dark.bsdf.reflectance.
                           "hidden.bsdf.reflectance.value")
 
 
-def test_probes_that_end_alike_at_other_values_say_the_images_allow_several_answers(
-        stubs, quads):
+@pytest.fixture(scope="module")
+def several(stubs, quads) -> tuple[pb.Job, pb.JobResult]:
     """The hidden quad's colour changes no image: probes from its given start (0.3) and its
-    range's middle (0.5) render alike, end at the same loss and keep their values. The result
-    lists both answers with their loss; the colour in view, which every probe recovers,
-    keeps its interval."""
+    range's middle (0.5) render alike, end at the same loss and keep their values."""
     scene, ref = quads
-    done, result = finished(stubs, pb.JobSpec(
+    return finished(stubs, pb.JobSpec(
         scene=scene.name, references=[ref], iterations=30, spp=8, starts=3,
         parameters=[pb.ParameterSpec(key=SEEN, initial_value=[0.5] * 3),
                     pb.ParameterSpec(key=HIDDEN, initial_value=[0.3])]))
+
+
+def test_probes_that_end_alike_at_other_values_say_the_images_allow_several_answers(
+        stubs, several):
+    """The result lists both answers with their loss; the colour in view, which every probe
+    recovers alike, keeps its interval."""
+    done, result = several
     assert done.spec.starts == 3
     probes = [n for n in done.notes if n.startswith("probe ")]
     assert [n.split(":")[0] for n in probes] == [f"probe {k} of 3" for k in (1, 2, 3)]
-    assert any("goes on from probe 1" in n for n in done.notes), done.notes
+    assert any("goes on from probe 1 " in n for n in done.notes), done.notes  # a tie: given
     # The best probe's iterations are the job's first: 30 in all, from 0.
     history = _history(stubs, done.name)
     assert [h.iteration for h in history] == list(range(30))
@@ -177,6 +184,35 @@ def test_probes_that_end_alike_at_other_values_say_the_images_allow_several_answ
     assert reason.startswith("the images allow several answers: 0.3 (loss ")
     assert ", 0.5 (loss " in reason, reason
     assert list(seen.interval) == [pb.INTERVAL_TWO_SIDED] * 3, seen
+
+
+def test_every_surface_says_several_answers(several, cli_env, tmp_path):
+    """As test_verdicts checks each verdict: the CLI's result and status, its --json, and the
+    export's parameters.csv and parameters.json."""
+    from test_cli_conventions import matopt
+    done, result = several
+    reason = next(p for p in result.parameters if p.key == HIDDEN).interval_reason[0]
+
+    def run(*args: str) -> str:
+        out = matopt(cli_env, *args)
+        assert out.returncode == 0, out.stderr
+        return out.stdout
+
+    line = next(x for x in run("job", "result", done.name).splitlines()
+                if x.startswith(f"{HIDDEN}:"))
+    assert line.endswith(f"(not determined by these images: {reason})") and "+-" not in line
+    assert reason in run("job", "status", done.name)
+    document = json.loads(run("job", "result", done.name, "--json"))
+    hidden = next(p for p in document["parameters"] if p["key"] == HIDDEN)
+    assert hidden["intervalReason"] == [reason]
+    assert "3 starts compared" in run("job", "status", done.name)
+    run("job", "export", done.name, "--out", str(tmp_path / "out"))
+    with open(tmp_path / "out" / "parameters.csv") as f:
+        rows = {(r["parameter"], int(r["component"])): r for r in csv.DictReader(f)}
+    assert rows[(HIDDEN, 0)]["interval"] == "not_determined"
+    assert rows[(HIDDEN, 0)]["reason"] == reason
+    exported = json.loads((tmp_path / "out" / "parameters.json").read_text())
+    assert exported["reasons"][HIDDEN] == [reason]
 
 
 def test_a_job_paused_as_its_probes_run_keeps_them_and_their_verdict(stubs, quads):
