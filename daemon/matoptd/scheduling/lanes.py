@@ -144,12 +144,15 @@ class Lane:
     def _timeout(self, action: Action) -> float:
         """The watchdog: a call is hung when it runs far past what its job's pace predicts.
         A load or a first iteration (kernels to compile), a scene task or the results have no
-        pace yet and get five times the base."""
+        pace yet and get five times the base; a fresh load that runs probes (starts compared)
+        that for each probe."""
         job = self.scheduler.jobs.get(action.job)
         if action.kind == "step" and job is not None and job.per_iteration:
             return max(self.watchdog, 20 * action.n * job.per_iteration)
         if action.kind in ("evict", "park") and job is not None and job.per_iteration:
             return max(self.watchdog, 20 * job.per_iteration)
+        if action.kind == "load" and job is not None and job.record.checkpoint is None:
+            return 5 * self.watchdog * max(1, job.record.settings.starts)
         return 5 * self.watchdog
 
     def _done(self, action: Action, iterations: int = 0, record: JobRecord | None = None
