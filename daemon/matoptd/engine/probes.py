@@ -37,14 +37,15 @@ def spans(opt: Optimization) -> dict[str, starts.Span]:
             for k, r in opt.parameters.items()}
 
 
-def run(first: Optimization, make: Callable[[dict[str, np.ndarray]], Optimization],
-        notes: list[str]) -> tuple[Optimization, list[api.IterationRecord]]:
-    """The probes from ``first`` (the job's loop from its given start) and from the other
-    starts (``make`` builds the loop from one), each for ``probe_length`` iterations. Returns
-    the best probe's loop, ready to go on, its iterations' records, and says in ``notes`` what
-    each probe did ("probe k of N: ...")."""
-    settings = first.settings
-    found = spans(first)
+def run(make: Callable[[dict[str, np.ndarray]], Optimization], notes: list[str]
+        ) -> tuple[Optimization, list[api.IterationRecord]]:
+    """The probes: ``make`` builds the job's loop from a start (values by key; {}: the given
+    start), each runs ``probe_length`` iterations. Returns the best probe's loop, ready to go
+    on, and its iterations' records; says in ``notes`` what each probe did ("probe k of N:
+    ..."). At most two loops are held at once: the best so far and the one running."""
+    opt = make({})
+    settings = opt.settings
+    found = spans(opt)
     where = starts.points(found, settings.starts, settings.seed)
     length = starts.probe_length(settings.iterations, len(where))
     if len(where) < 2 or length < 1:
@@ -52,13 +53,14 @@ def run(first: Optimization, make: Callable[[dict[str, np.ndarray]], Optimizatio
                      + ("no parameter has a bounded range to start elsewhere in"
                         if len(where) < 2 else f"{settings.iterations} iteration(s) leave "
                         "no room for probes"))
-        return first, []
-    initial = first.initial
+        return opt, []
+    initial = opt.initial
     kept: tuple[Optimization, list[api.IterationRecord]] | None = None
     probes: list[starts.Probe] = []
     spent = 0.0  # the probes' time before this one
     for index, point in enumerate(where):
-        opt = first if index == 0 else make(point)
+        if index:  # the first is the given start, built above
+            opt = make(point)
         rows, losses = [], []
         for _ in range(length):
             s = opt.step()
@@ -76,7 +78,7 @@ def run(first: Optimization, make: Callable[[dict[str, np.ndarray]], Optimizatio
                      f"loss {loss:.4g} +- {noise:.2g}")
         if kept is None or starts.best(probes) is probe:
             kept = (opt, rows)
-        del opt
+        opt = None
         gc.collect()  # a losing probe's buffers go before the next one is built
     opt, rows = kept
     chosen = starts.best(probes)

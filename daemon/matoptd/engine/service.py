@@ -198,16 +198,16 @@ class MitsubaEngine:
                      for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
-            prepared = copy.deepcopy(chosen) if settings.starts > 1 else chosen
-            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
+            probed: list[api.IterationRecord] = []
+            if checkpoint is None and settings.starts > 1:
+                # Each probe's loop with the choices as prepared for this scene, fresh.
+                opt, probed = probes.run(lambda point: Optimization(
+                    loaded, settings, refs, copy.deepcopy(chosen), None,
+                    {**initial, **point}, truth), notes)
+            else:
+                opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
-        probed: list[api.IterationRecord] = []
-        if checkpoint is None and settings.starts > 1:
-            # Each probe's loop with the choices as prepared for this scene, fresh.
-            opt, probed = probes.run(opt, lambda point: Optimization(
-                loaded, settings, refs, copy.deepcopy(prepared), None, {**initial, **point},
-                truth), notes)
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
         changed = [opt.chosen.changed] if opt.chosen.changed else []  # the scene's integrator
         said = [line for c in opt.active for line in c.notes()]  # once, at the start
