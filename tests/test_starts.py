@@ -97,6 +97,22 @@ def test_a_loss_above_the_noise_or_values_within_the_interval_are_one_answer():
     assert starts.several(close, {"c": RGB}, errors)["c"][2]
 
 
+def test_a_value_still_on_its_way_is_no_answer():
+    """A probe from 1.5 towards an eta of 2.5, at 1.87 after 10 iterations and moving 0.03
+    an iteration, can tie in loss with one at 2.63: at its pace it would go 3 in the 100
+    iterations left, so its 1.87 is no answer. Settled, it is."""
+    eta = Span("scalar", 1.0, 4.0, np.array([1.5], np.float32))
+    path = [{"eta": np.array([1.72 + 0.03 * i], np.float32)} for i in range(6)]
+    reach = starts.reach(path, left=100)
+    assert reach["eta"] == pytest.approx([3.0], rel=1e-3)
+    moving = Probe(0, {}, {"eta": np.array([1.87], np.float32)}, 0.001674, 2e-5, 10, reach)
+    settled = Probe(1, {}, {"eta": np.array([2.63], np.float32)}, 0.001766, 5.6e-5, 10,
+                    {"eta": np.array([0.1])})
+    assert starts.several([moving, settled], {"eta": eta}) == {}
+    moving.reach = {"eta": np.array([0.2])}
+    assert starts.several([moving, settled], {"eta": eta})["eta"][0]
+
+
 def test_the_verdict_says_several_answers_instead_of_an_interval():
     said = verdicts.Verdicts(
         {"c": api.StandardError(np.array([0.01, 0.01, 0.01], np.float32), ["two_sided"] * 3)},

@@ -55,22 +55,26 @@ def run(make: Callable[[dict[str, np.ndarray]], Optimization], notes: list[str]
                         "no room for probes"))
         return opt, []
     initial = opt.initial
+    large = {k for k, s in found.items() if s.kind in ("texture", "volume_grid")}
     kept: tuple[Optimization, list[api.IterationRecord]] | None = None
     probes: list[starts.Probe] = []
     spent = 0.0  # the probes' time before this one
     for index, point in enumerate(where):
         if index:  # the first is the given start, built above
             opt = make(point)
-        rows, losses = [], []
+        rows, losses, path = [], [], []
         for _ in range(length):
             s = opt.step()
             rows.append(iteration_record(opt, s, spent + opt.progress.elapsed))
             losses.append(s.loss)
+            # a large value by its mean level: the tail's move is all that is kept of it
+            path = (path + [{k: v if k not in large else np.mean(v, keepdims=True)
+                             for k, v in s.values.items()}])[-starts.TAIL - 1:]
             if s.done:
                 break
         loss, noise = starts.ending(losses, opt.loss.window)
         probe = starts.Probe(index, point, dict(opt.progress.last.values), loss, noise,
-                             len(rows))
+                             len(rows), starts.reach(path, settings.iterations - len(rows)))
         probes.append(probe)
         spent += opt.progress.elapsed
         notes.append(f"probe {index + 1} of {len(where)}: from {_values(point, found)}, "

@@ -52,7 +52,9 @@ class Span:
 @dataclass
 class Probe:
     """Where a probe began and ended: its start and its last values per parameter, its ending
-    loss (the mean of its last iterations) and that mean's noise (a standard error)."""
+    loss (the mean of its last iterations) and that mean's noise (a standard error), and how
+    far each value would go at the pace of its last iterations in the job's iterations left
+    (``reach``; a texture's or grid's by its mean level)."""
 
     index: int
     start: dict[str, np.ndarray] = field(default_factory=dict)
@@ -60,6 +62,7 @@ class Probe:
     loss: float = math.inf
     noise: float = 0.0
     iterations: int = 0
+    reach: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def probe_length(iterations: int, starts: int) -> int:
@@ -111,6 +114,17 @@ def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
     return all(np.allclose(a[k], b[k], rtol=1e-6, atol=1e-7) for k in a)
 
 
+def reach(path: list[dict[str, np.ndarray]], left: int) -> dict[str, np.ndarray]:
+    """How far each value (per component) would go in ``left`` iterations at the pace of
+    the last TAIL of ``path`` (values per iteration)."""
+    if len(path) < 2:
+        return {}
+    tail = path[-TAIL - 1:]
+    pace = {k: np.abs(_level(tail[-1][k], False) - _level(tail[0][k], False)) / (len(tail) - 1)
+            for k in tail[-1] if k in tail[0]}
+    return {k: p * left for k, p in pace.items()}
+
+
 def ending(losses: list[float], window: int) -> tuple[float, float]:
     """A probe's ending loss and its noise: the mean of its last max(TAIL, window) finite
     losses, and the standard error of that mean about their trend (a probe still descends,
@@ -157,7 +171,10 @@ def several(probes: list[Probe], spans: dict[str, Span],
     [(value, loss), ...] for each component on which a tied probe ends apart from the best
     one. Apart: outside ``width`` standard errors (``errors``, of the job's result, where
     finite), else more than APART of the component's scale (its range, or its magnitude
-    where unbounded). Textures and grids are compared by their mean level."""
+    where unbounded). Both must have settled: a value whose pace would take it that far in
+    the job's iterations left (``Probe.reach``) was on its way, not at an answer (the loss
+    of a probe still descending can tie by chance). Textures and grids are compared by their
+    mean level."""
     tied = ties(probes)
     if len(tied) < 2:
         return {}
@@ -178,13 +195,20 @@ def several(probes: list[Probe], spans: dict[str, Span],
                     and math.isfinite(float(error[c]))):
                 allowed = width * float(error[c])
             values = [float(e[c]) for e in ends]
-            if any(abs(v - base) > allowed for v in values[1:]):
+            reaches = [_component(p.reach.get(key), c) for p in tied]
+            if any(abs(v - base) > max(allowed, r, reaches[0])
+                   for v, r in zip(values[1:], reaches[1:])):
                 components.append([(v, p.loss) for v, p in zip(values, tied)])
             else:
                 components.append([])
         if any(components):
             out[key] = components
     return out
+
+
+def _component(reached: np.ndarray | None, c: int) -> float:
+    """A component's reach (0 where not recorded)."""
+    return float(reached[c]) if reached is not None and c < np.size(reached) else 0.0
 
 
 def _level(values: np.ndarray, large: bool) -> np.ndarray:
