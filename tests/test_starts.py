@@ -80,12 +80,22 @@ def _probe(index: int, value: float, loss: float, noise: float = 0.001) -> Probe
 def test_probes_at_the_same_loss_and_other_values_are_several_answers():
     probes = [_probe(0, 0.2, 0.0101), _probe(1, 0.8, 0.0100), _probe(2, 0.5, 0.05)]
     found = starts.several(probes, {"c": RGB})
-    # the third component differs; the best probe (lowest loss) comes first; probe 2's loss
-    # is far above the noise, so its value is no answer
+    # the third component differs; the probe the job goes on from comes first (the given
+    # start: the second's loss is lower by less than the noise); the third's loss is far
+    # above the noise, so its value is no answer
+    assert starts.best(probes) is probes[0]
     assert list(found) == ["c"] and found["c"][:2] == [[], []]
-    assert found["c"][2] == [(pytest.approx(0.8), 0.0100), (pytest.approx(0.2), 0.0101)]
-    assert starts.reason(found["c"][2]) == ("the images allow several answers: 0.8 (loss 0.01), "
-                                            "0.2 (loss 0.0101)")
+    assert found["c"][2] == [(pytest.approx(0.2), 0.0101), (pytest.approx(0.8), 0.0100)]
+    assert starts.reason(found["c"][2]) == ("the images allow several answers: 0.2 (loss "
+                                            "0.0101), 0.8 (loss 0.01)")
+
+
+def test_the_job_leaves_the_given_start_only_for_a_loss_lower_beyond_noise():
+    given, lucky, better = (_probe(0, 0.5, 0.01263, 0.0004), _probe(1, 0.5, 0.01258, 0.0004),
+                            _probe(2, 0.5, 0.009, 0.0004))
+    assert starts.best([given, lucky]) is given
+    assert starts.best([given, lucky, better]) is better
+    assert starts.best([_probe(0, 0.5, math.nan), lucky]) is lucky
 
 
 def test_a_loss_above_the_noise_or_values_within_the_interval_are_one_answer():

@@ -92,7 +92,9 @@ def run(make: Callable[[dict[str, np.ndarray]], Optimization], notes: list[str]
     opt.initial = initial  # the job's given start, as a resume from a checkpoint sees it
     opt._apply()  # the scene holds the last probe's values
     notes.append(f"starts: {len(where)} compared over {length} iterations each; the job "
-                 f"goes on from probe {chosen.index + 1} (lowest loss)")
+                 f"goes on from probe {chosen.index + 1} ("
+                 + ("the given start: none ended lower beyond noise)" if chosen.index == 0
+                    else "its loss lower beyond noise)"))
     return opt, rows
 
 

@@ -141,27 +141,32 @@ def ending(losses: list[float], window: int) -> tuple[float, float]:
 
 
 def best(probes: list[Probe]) -> Probe:
-    """The probe of the lowest ending loss; the first of those equal to rounding (a millionth
-    of it), so that the given start wins a tie."""
-    finite = [p.loss for p in probes if math.isfinite(p.loss)]
-    if not finite:
-        return probes[0]
-    low = min(finite)
-    return next(p for p in probes if math.isfinite(p.loss) and p.loss <= low + ROUNDING * abs(low))
+    """The probe the job goes on from: in order, a probe replaces the one held so far only
+    with a loss lower beyond noise (not a ``_tie``), so that the given start is left only
+    for a better one. A lower loss by chance is no reason to go elsewhere: three starts then
+    end as one does where the images do not tell them apart. In order, so that the engine
+    holds no more than the best so far and the probe running."""
+    held = probes[0]
+    for p in probes[1:]:
+        if math.isfinite(p.loss) and (not math.isfinite(held.loss)
+                                      or (p.loss < held.loss and not _tie(p, held))):
+            held = p
+    return held
+
+
+def _tie(p: Probe, q: Probe) -> bool:
+    """Whether two probes' losses are within TIE standard errors of their difference (never
+    less than ROUNDING of the loss)."""
+    allowed = TIE * math.hypot(p.noise, q.noise) + ROUNDING * abs(q.loss)
+    return abs(p.loss - q.loss) <= allowed
 
 
 def ties(probes: list[Probe]) -> list[Probe]:
     """The probes whose ending losses are within noise of the best one's: the best first.
     Noise is TIE standard errors of the difference, and never less than ROUNDING."""
     top = best(probes)
-    out = [top]
-    for p in probes:
-        if p is top or not math.isfinite(p.loss):
-            continue
-        allowed = TIE * math.hypot(p.noise, top.noise) + ROUNDING * abs(top.loss)
-        if abs(p.loss - top.loss) <= allowed:
-            out.append(p)
-    return out
+    return [top] + [p for p in probes
+                    if p is not top and math.isfinite(p.loss) and _tie(p, top)]
 
 
 def several(probes: list[Probe], spans: dict[str, Span],
