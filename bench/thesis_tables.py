@@ -57,6 +57,8 @@ class Plan:
     rates: dict[str, float] = field(default_factory=dict)
     why: str = ""
     sky: int = 128               # the environment's width in texels (its height is half)
+    starts: int = 1              # the job's starts compared (bench/starts.py sets more)
+    plain: bool = True           # also run the plain loop at equal time
 
 
 def plans(quick: bool, thesis_size: bool = False) -> list[Plan]:
@@ -119,6 +121,7 @@ class Run:
     errors: dict[str, float]             # target key -> relative error at the end
     staying: dict[str, float]            # target key -> worst relative error, last fifth
     notes: list[str] = field(default_factory=list)
+    reasons: dict[str, list[str]] = field(default_factory=dict)  # why not determined, per key
 
 
 def _quality(case: ts.Case, final: dict[str, np.ndarray], path: list[dict[str, np.ndarray]]
@@ -154,6 +157,8 @@ def run_daemon(client: mc.Client, work, case: ts.Case, plan: Plan, scene: pb.Sce
                       references=[pb.Reference(blob=i.exr_blob, sensor=i.sensor) for i in refs])
     if plan.spp:
         spec.spp = plan.spp
+    if plan.starts > 1:
+        spec.starts = plan.starts
     job = common.run_job(client, spec)
     common.require_success(job, f"thesis_tables {case.name} seed {seed}")
     last = client.jobs.GetJobResult(pb.GetJobResultRequest(name=job.job.name, which=pb.WHICH_LAST))
@@ -162,7 +167,8 @@ def run_daemon(client: mc.Client, work, case: ts.Case, plan: Plan, scene: pb.Sce
     path = [{v.key: np.asarray(v.value) for v in r.parameters if v.value} for r in job.history]
     errors, staying = _quality(case, final, path)
     return Run("daemon", seed, job.history[-1].seconds, len(job.history), final, start, errors,
-               staying, list(job.job.notes))
+               staying, list(job.job.notes),
+               {v.key: list(v.interval_reason) for v in last.parameters if v.interval_reason})
 
 
 def run_plain(case: ts.Case, plan: Plan, xml, references, ranges, seconds: float, seed: int,
@@ -230,13 +236,15 @@ def measure(plan: Plan, settings: Settings, server: common.Daemon
                 client, image.exr_blob, folder / f"reference{image.sensor}.exr")
         xml = folder / "plain.xml"
         xml.write_text(common.with_ids((folder / case.main).read_text()))
-        large = [k for k, t in case.truth.items() if t.size > 64]
+        large = [k for k, t in case.truth.items() if t.size > 64] if plan.plain else []
         seen = seen_entries(folder / case.main, large, len(refs), server.variant) if large else {}
         runs = []
         for seed in range(plan.seeds):
             d = run_daemon(client, settings.work, case, plan, scene, refs, seed)
-            p = run_plain(case, plan, xml, paths, ranges, d.seconds, seed, server.variant)
-            runs += [d, p]
+            runs.append(d)
+            if plan.plain:
+                runs.append(run_plain(case, plan, xml, paths, ranges, d.seconds, seed,
+                                      server.variant))
         return case, runs, seen
     finally:
         client.scenes.DeleteScene(pb.DeleteSceneRequest(name=scene.name))

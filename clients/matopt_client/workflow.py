@@ -222,6 +222,7 @@ class JobSettings:
     fit_exposure: bool | None = None
     spp_from: dict[int, int] | None = None  # first iteration -> spp from there on
     large_steps_lambda: float | None = None  # LargeSteps for vertex positions
+    starts: int | None = None  # starts compared by short probes (1: the given one only)
 
 
 def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: JobSettings,
@@ -254,7 +255,8 @@ def build_spec(scene: str, parameters: Sequence[pb.ParameterSpec], settings: Job
     plain = {"iterations": s.iterations, "spp": s.spp, "min_error": s.min_error,
              "seed": s.seed, "learning_rate": s.learning_rate, "clamp": s.clamp,
              "film_height": s.film_height, "image_error_every": s.image_error_every,
-             "fit_exposure": s.fit_exposure, "large_steps_lambda": s.large_steps_lambda}
+             "fit_exposure": s.fit_exposure, "large_steps_lambda": s.large_steps_lambda,
+             "starts": s.starts}
     for name, value in plain.items():
         if value is not None:
             setattr(spec, name, value)
@@ -283,7 +285,7 @@ def settings_of(spec: pb.JobSpec) -> JobSettings:
         learning_rate=optional("learning_rate"), clamp=spec.clamp,
         film_height=spec.film_height or None, image_error_every=spec.image_error_every or None,
         fit_exposure=spec.fit_exposure, spp_from=dict(sorted(spec.spp_from.items())) or None,
-        large_steps_lambda=spec.large_steps_lambda or None)
+        large_steps_lambda=spec.large_steps_lambda or None, starts=optional("starts"))
 
 
 def applied(spec: pb.JobSpec) -> str:
@@ -306,7 +308,8 @@ def applied(spec: pb.JobSpec) -> str:
         + ([f"film height {s.film_height} px"] if s.film_height else []) \
         + (["exposure fitted"] if s.fit_exposure else []) \
         + ([f"large steps, lambda {number(s.large_steps_lambda)}"] if s.large_steps_lambda
-           else [])
+           else []) \
+        + ([f"{s.starts} starts compared"] if s.starts and s.starts > 1 else [])
     return ", ".join(words)
 
 

@@ -163,6 +163,9 @@ class Started:
     shapes: dict[str, list[int]]  # of every optimized parameter
     kinds: dict[str, str]
     choices: list[ChoiceStatus] = field(default_factory=list)
+    # A fresh job that compared starts (JobSettings.starts): the iterations its best probe ran,
+    # which are the job's first ones. None otherwise.
+    probed: Progress | None = None
 
 
 @dataclass

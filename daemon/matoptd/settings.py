@@ -61,6 +61,7 @@ CHOICES = {
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")
+MAX_STARTS = 8  # the most starts a job may compare (JobSettings.starts)
 
 
 def coarse_to_fine(value: str) -> tuple[str, int]:
@@ -165,6 +166,9 @@ class JobSettings:
     large_steps: float = 0.0
     # A sample-count schedule: from iteration N on (key), renders take this spp (value).
     spp_from: dict[int, int] = field(default_factory=dict)
+    # Starts compared (engine/starts.py): > 1 runs that many short probes from diverse starts
+    # and goes on from the best one; 1: the given start only.
+    starts: int = 1
 
     def spp_at(self, iteration: int) -> int:
         """The spp of iteration i's renders: that of the latest phase begun by i."""

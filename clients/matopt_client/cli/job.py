@@ -187,6 +187,11 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
 @click.option("--large-steps", "large_steps", type=float, metavar="LAMBDA",
               help="step vertex positions as LargeSteps (Nicolet et al. 2021) with this "
                    "lambda, e.g. 19 (more for finer meshes), Adam in its uniform mode")
+@click.option("--starts", type=int, metavar="N",
+              help="compare N starts (1 to 8): short probes from the given start, the "
+                   "ranges' middles and colours' extremes, then the rest of the iterations "
+                   "from the best; the result says where the images allow several answers "
+                   "[daemon default: 1]")
 @click.option("--min-error", type=float,
               help="stop once the loss is below this [daemon default: 0, off]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), help="random seed")
@@ -217,7 +222,7 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
 def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, inits, smooth,
           loss: str | None, schedule: str | None,
           iterations: int | None, spp: int | None, spp_from, large_steps: float | None,
-          min_error: float | None, seed: int | None,
+          starts: int | None, min_error: float | None, seed: int | None,
           sensor_mode: str | None, clamp: bool, resolution: int | None, truths,
           image_error_every: int | None, from_job: str | None, from_which: str,
           choices, preset: str | None, wait: bool, as_json: bool) -> None:
@@ -238,7 +243,7 @@ def start(scene: str, refs, masks, fit_exposure: bool, keys, rates, ranges, init
         learning_rate=next((rate for key, rate in rates if key is None), None),
         clamp=clamp or None, film_height=resolution, image_error_every=image_error_every,
         fit_exposure=fit_exposure or None, spp_from=dict(spp_from) or None,
-        large_steps_lambda=large_steps)
+        large_steps_lambda=large_steps, starts=starts)
     parameters = parameter_specs(keys, rates, ranges, inits, smooth)
     truth = [pb.ParameterValue(key=t.key, value=t.values, blob=t.npy or "") for t in truths]
     references = reference_files(refs, masks)

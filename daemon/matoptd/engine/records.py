@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..truth import ParameterError
+from .starts import Probe
 
 GAIN = "gain"  # the kind of an exposure gain's record (the others are the API's KINDS)
 
@@ -93,6 +94,7 @@ class Progress:
     recent: list[float] = field(default_factory=list)  # the last ``window`` finite losses
     best: Best = field(default_factory=Best)
     last: Best = field(default_factory=Best)  # the latest iteration run
+    probes: list[Probe] = field(default_factory=list)  # the starts compared (JobSettings.starts)
 
 
 @dataclass

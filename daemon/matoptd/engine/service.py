@@ -7,6 +7,7 @@ directory. A job's ``Optimization`` stays in memory between ``start`` and ``rele
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import gc
 import hashlib
@@ -25,7 +26,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..settings import Values, read_values
-from . import (choices, diagnosis, images, parameters, scene as scenes, scene_export,
+from . import (choices, diagnosis, images, parameters, probes, scene as scenes, scene_export,
                uncertainty, verdicts)
 from .integrator import medium_notes
 from .kept_scenes import KeptScenes, Loaded
@@ -198,8 +199,15 @@ class MitsubaEngine:
                      for k, v in settings.truth.items()}
             initial = {p.key: self._values(p.initial, f"initial value of '{p.key}'")
                        for p in settings.parameters if p.initial is not None}
-            opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth,
-                               shelf)
+            probed: list[api.IterationRecord] = []
+            if checkpoint is None and settings.starts > 1:
+                # Each probe's loop with the choices as prepared for this scene, fresh.
+                opt, probed = probes.run(lambda point: Optimization(
+                    loaded, settings, refs, copy.deepcopy(chosen), None,
+                    {**initial, **point}, truth, shelf), notes)
+            else:
+                opt = Optimization(loaded, settings, refs, chosen, checkpoint, initial, truth,
+                                   shelf)
         except CheckpointError as exc:
             raise api.EngineError(f"the job's checkpoint cannot be restored: {exc}") from None
         skipped = [i for i in range(len(loaded.sensors())) if i not in opt.renders.references]
@@ -217,8 +225,12 @@ class MitsubaEngine:
         self.runs[job] = Run(opt, self.layout(settings.scene), dict(settings.scene.overrides),
                              shapes, kinds, settings.max_samples,
                              held if loaded is held.scene else None)
-        return api.Started(opt.progress.iteration, opt.integrator_name, opt.integrator_reason,
-                           list(opt.renders.references), opt.notes, shapes, kinds, opt.status())
+        p = opt.progress
+        return api.Started(p.iteration, opt.integrator_name, opt.integrator_reason,
+                           list(opt.renders.references), opt.notes, shapes, kinds, opt.status(),
+                           api.Progress(probed, False, "", p.best.iteration, p.best.loss,
+                                        p.elapsed, _counters(opt), opt.status())
+                           if probed else None)
 
     def _run(self, job: str) -> Run:
         try:
@@ -233,10 +245,7 @@ class MitsubaEngine:
         done, reason = False, ""
         for _ in range(max(1, n)):
             s = opt.step()
-            records.append(api.IterationRecord(
-                s.iteration, opt.progress.elapsed, s.loss,
-                {k: v for k, v in s.values.items() if v.size <= api.SMALL},
-                s.errors, s.image_error, s.gains, s.spp))
+            records.append(probes.iteration_record(opt, s))
             if s.done:
                 done, reason = True, s.stop_reason
                 break
@@ -287,11 +296,14 @@ class MitsubaEngine:
             {k: r.gradients for k, r in opt.records.items() if r.gradients},
             shown.traded, shown.undetermined)
         # One verdict per component, the diagnosis and the standard errors reconciled: what
-        # every surface shows.
-        said = verdicts.reconcile(shown, diagnosed, {})
+        # every surface shows; with the other basins the probes found, where starts were
+        # compared.
+        found, spans = opt.progress.probes, probes.spans(opt)
+        said = verdicts.several(verdicts.reconcile(shown, diagnosed, {}), found, spans)
         for r in results:
             e = estimates.get(r.which)
-            final = verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)) if e else said
+            final = said if not e else verdicts.several(
+                verdicts.reconcile(e, diagnosed, _small(r.values, run.kinds)), found, spans)
             r.standard_errors, r.gain_errors = final.errors, final.gains
         return api.Finished(results, said.notes + opt.said, _counters(opt))
 
@@ -310,7 +322,8 @@ class MitsubaEngine:
                 raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
             e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds,
                                     self.runs[run].shapes)[which]
-            said = verdicts.reconcile(e, diagnosis.Diagnosis(), {})
+            said = verdicts.several(verdicts.reconcile(e, diagnosis.Diagnosis(), {}),
+                                    opt.progress.probes, probes.spans(opt))
             return api.Estimated(said.errors, said.gains, said.notes)
         finally:
             self.release(run)

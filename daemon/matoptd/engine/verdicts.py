@@ -7,6 +7,10 @@ verdict takes the more cautious: a wander widens the interval to span it; where 
 component not decided otherwise, or the widened interval says nothing, it is not determined
 (standard error +inf, with the reason), and the notes that gave it an interval go. Every
 surface (status, result, export, the clients) shows what this returns.
+
+A job that compared starts (JobSettings.starts) adds what no standard error can know: other
+basins. Where its probes ended at losses within noise of the best one's but at values outside
+each other's intervals, the component is not determined, its reason listing the answers.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import engine_api as api
+from . import starts
 from .diagnosis import Diagnosis, Wander
 
 if TYPE_CHECKING:  # uncertainty loads Mitsuba's integrators, which need a variant set
@@ -89,3 +94,26 @@ def _widened(verdict: api.StandardError | None, wander: Wander) -> api.StandardE
         return None
     return api.StandardError(error.astype(np.float32), list(verdict.reading),
                              list(verdict.reason))
+
+
+def several(said: Verdicts, probes: list[starts.Probe], spans: dict[str, starts.Span]
+            ) -> Verdicts:
+    """The verdicts with every component on which the probes found several answers not
+    determined, the reason listing each answer and its probe's loss. A value without
+    per-component verdicts (a texture, a grid) gets a note instead."""
+    if len(probes) < 2:
+        return said
+    widths = {k: np.asarray(e.error, dtype=np.float64) for k, e in said.errors.items()}
+    errors, notes = dict(said.errors), list(said.notes)
+    for key, components in starts.several(probes, spans, widths, WIDTH).items():
+        had = errors.get(key)
+        if had is None or len(had.reading) != len(components):
+            notes += [f"{key}: {starts.reason(a)}" for a in components if a]
+            continue
+        error, reading = np.array(had.error, dtype=np.float32), list(had.reading)
+        reason = list(had.reason) or [""] * len(reading)
+        for c, answers in enumerate(components):
+            if answers:
+                error[c], reading[c], reason[c] = np.inf, "not_determined", starts.reason(answers)
+        errors[key] = api.StandardError(error, reading, reason)
+    return Verdicts(errors, said.gains, notes)

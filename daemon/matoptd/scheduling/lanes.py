@@ -18,6 +18,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from .. import engine_api as api
 from ..errors import DiskFull, Internal, NotFound, Unavailable, UserError
 from ..logs import about
 from ..records import JobRecord, Phase, RESUME_PENDING
@@ -143,12 +144,15 @@ class Lane:
     def _timeout(self, action: Action) -> float:
         """The watchdog: a call is hung when it runs far past what its job's pace predicts.
         A load or a first iteration (kernels to compile), a scene task or the results have no
-        pace yet and get five times the base."""
+        pace yet and get five times the base; a fresh load that runs probes (starts compared)
+        that for each probe."""
         job = self.scheduler.jobs.get(action.job)
         if action.kind == "step" and job is not None and job.per_iteration:
             return max(self.watchdog, 20 * action.n * job.per_iteration)
         if action.kind in ("evict", "park") and job is not None and job.per_iteration:
             return max(self.watchdog, 20 * job.per_iteration)
+        if action.kind == "load" and job is not None and job.record.checkpoint is None:
+            return 5 * self.watchdog * max(1, job.record.settings.starts)
         return 5 * self.watchdog
 
     def _done(self, action: Action, iterations: int = 0, record: JobRecord | None = None
@@ -214,16 +218,22 @@ class Lane:
             record.notes.extend(n for n in started.notes if n not in record.notes)
             if record.resumed_from == RESUME_PENDING:
                 record.resumed_from = (f"checkpoint at iteration {started.iteration}"
-                                       if started.iteration else "from the start")
+                                       if started.iteration and started.probed is None
+                                       else "from the start")
             # The first checkpoint after a load is due after CHECKPOINT_ITERATIONS, however
             # fast they are.
             record.checkpoint = started.iteration
             self.scheduler.jobs[record.name].checkpointed = -math.inf
             self.store.truncate_history(record.name, started.iteration)  # they run again
+        if started.probed is not None:
+            # The best probe's iterations are the job's first: kept at once, with a
+            # checkpoint, so that the probes never run again.
+            self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
+            self._progressed(record, started.probed)
         self._done(action, record=record)
 
-    def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
-        progress = engine.step(record.name, action.n)
+    def _progressed(self, record: JobRecord, progress: api.Progress) -> None:
+        """Keeps iterations a worker ran and tells the job's watchers."""
         self.store.add_iterations(record.name, progress.records)
         with self.state.lock:
             last = progress.records[-1]
@@ -234,10 +244,16 @@ class Lane:
             record.choices = list(progress.choices)
             record.updated = self.state.clock.time()
             self.store.put_job(record)
-            job, snapshot = self.scheduler.jobs[record.name], record.snapshot()
+            snapshot = record.snapshot()
         # The job after its iterations: clients show its best_iteration/best_loss rather than
         # compute their own (for dual_buffer the best is a windowed mean, not a record's loss).
         self.state.events.publish(record.name, [*progress.records, snapshot])
+
+    def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        progress = engine.step(record.name, action.n)
+        self._progressed(record, progress)
+        with self.state.lock:
+            job = self.scheduler.jobs[record.name]
         if progress.done:
             self._end(engine, record, action, Phase.SUCCEEDED, progress.stop_reason,
                       len(progress.records))

@@ -146,7 +146,7 @@ def spec_to_pb(job: JobRecord) -> pb.JobSpec:
         film_height=s.film_height, ground_truth=values_to_pb(s.truth, {}),
         image_error_every=s.image_error_every, image_error_spp=s.image_error_spp,
         fit_exposure=s.fit_exposure, choices=s.choices, spp_from=s.spp_from,
-        large_steps_lambda=s.large_steps)
+        large_steps_lambda=s.large_steps, starts=s.starts)
     if s.learning_rate is not None:
         spec.learning_rate = s.learning_rate
     return spec

@@ -16,8 +16,9 @@ from .. import range_notes
 from ..engine_api import ParameterInfo
 from ..errors import FailedPrecondition, InvalidArgument
 from ..records import ResultRecord, SceneRecord
-from ..settings import (ALL_CHOICES, CHOICE_OPTIONS, CHOICE_VALUES, CHOICES, JobSettings,
-                        ParameterSetting, ReferenceInput, SceneInput, Values, read_values)
+from ..settings import (ALL_CHOICES, CHOICE_OPTIONS, CHOICE_VALUES, CHOICES, MAX_STARTS,
+                        JobSettings, ParameterSetting, ReferenceInput, SceneInput, Values,
+                        read_values)
 from .convert import given_values
 
 PARAMETER_KINDS_SMOOTHED = ("texture", "volume_grid")
@@ -85,8 +86,11 @@ def _settings(spec: pb.JobSpec) -> dict:
     if spec.HasField("learning_rate") and not (math.isfinite(spec.learning_rate)
                                                and spec.learning_rate > 0):
         raise InvalidArgument(f"learning_rate must be > 0, got {spec.learning_rate}")
+    if spec.HasField("starts") and not 1 <= spec.starts <= MAX_STARTS:
+        raise InvalidArgument(f"starts must be 1 to {MAX_STARTS}, got {spec.starts}")
     given = {name: getattr(spec, name) for name in ("iterations", "min_error", "spp",
-                                                    "learning_rate") if spec.HasField(name)}
+                                                    "learning_rate", "starts")
+             if spec.HasField(name)}
     for name, enum in (("loss", pb.Loss), ("schedule", pb.Schedule),
                        ("sensor_mode", pb.SensorMode)):
         if getattr(spec, name):  # UNSPECIFIED: the default
