@@ -2,7 +2,8 @@
 follows the same trajectory as the same job unfrozen, for surfaces, textures (through a
 multires level change), media, several sensors, a spp schedule, a checkpoint in between and
 two jobs stepped in turn; it records again only when the structure changes, and says so; and
-it falls back, saying why, where a job cannot be frozen."""
+it falls back, saying why, where a job cannot be frozen. A job with eta by differences runs
+frozen too, and the standard errors' passes follow the choice."""
 
 from __future__ import annotations
 
@@ -271,3 +272,6 @@ def test_a_daemon_job_runs_frozen_with_the_history_of_the_unfrozen_one(stubs):
     on = next(c for c in frozen.choices if c.name == "frozen")
     assert on.on and "replayed" in on.why
     assert not next(c for c in unfrozen.choices if c.name == "frozen").on
+    # the standard errors' passes follow the choice: frozen, and with it off unfrozen
+    assert any(n.startswith("standard errors: J's passes frozen") for n in frozen.notes)
+    assert not any("J's passes" in n for n in unfrozen.notes)
