@@ -63,6 +63,8 @@ class Linearized:
     noise: np.ndarray      # Q, one iteration's gradient
     reference: np.ndarray  # Q_R
     spread: np.ndarray
+    gradient: np.ndarray | None = None  # dL/du, 2 (K J)^T (I - R)
+    loss_variance: float = 0.0          # of one render's loss, from the render noise
 
 
 @dataclass

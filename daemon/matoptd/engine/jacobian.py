@@ -39,6 +39,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import covariance, parameters, split_samples
+from .diagnosis import Kept
+from .renders import Reference
 from .rows import linearized, rows
 
 
@@ -125,6 +127,22 @@ class Job:
     seconds: float              # its optimizing time so far (J may take BUDGET of it)
 
 
+def quantity(key: str, value: np.ndarray, kept: Kept, channels: int = 0,
+             shape: tuple[int, ...] = ()) -> Quantity:
+    """A parameter as J sees it, at ``value``, in the coordinates it is stepped in."""
+    eta = parameters.dielectric_eta(key)  # the log_space choice's kept range is v's
+    return Quantity(key, value, kept.log, kept.lo, kept.hi, kept.floor, channels, eta, eta,
+                    shape)
+
+
+def references(refs: dict[int, Reference], gains: dict[int, np.ndarray]
+               ) -> dict[int, Sensor]:
+    """The references as J reads them, with the exposure gain of each gained sensor."""
+    return {s: Sensor(np.asarray(ref.image), None if ref.weight is None
+                      else np.asarray(ref.weight), gains.get(s), ref.name)
+            for s, ref in refs.items()}
+
+
 @dataclass
 class _Component:
     name: str       # for notes: "key", "key[1]", "key (mean level, channel 0)", "gain of x[2]"
@@ -185,9 +203,12 @@ class Linearization:
 
 def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
               integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
-              job: Job) -> Linearization:
+              job: Job, fixed: bool = False) -> Linearization:
     """J, the render noise and the residual at the values ``params`` holds (set by the
     caller to ``quantities``' values), as H, Q and Q_R.
+
+    ``fixed``: J at the job's spp in one round, whatever the time (a step taken from it must
+    be the same on any machine, and after a checkpoint).
 
     J is first estimated at the spp that half the budget allows (_samples); a component
     whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
@@ -205,7 +226,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
                    for n in (0, 1)] for s in sensors}
     full = (time.perf_counter() - began) / (2 * len(sensors))
     began_one = time.perf_counter()
-    _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
+    if not fixed:
+        _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
     budget = min(BUDGET * job.seconds, BUDGET_CAP)
     split = split_samples.shares_primal(integrator)
@@ -220,7 +242,8 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
 
     count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
                                        comps, by_key, params))
-    spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
+    spp = job.spp if fixed else _samples(budget / 2 - (time.perf_counter() - began), count,
+                                         cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
@@ -257,7 +280,7 @@ def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integr
         then = (time.perf_counter() - round_began) * (
             len(_passes(short, comps, by_key, params)) / len(passes)) * (
             cost(4 * spp) / cost(spp))
-        if not short or time.perf_counter() - began + then > budget:
+        if fixed or not short or time.perf_counter() - began + then > budget:
             break
         todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began)
