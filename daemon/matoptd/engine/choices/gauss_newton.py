@@ -31,7 +31,6 @@ import numpy as np
 
 from ...engine_api import SMALL
 from .. import parameters, trust_region
-from ..jacobian import _latent_step, quantity
 from ..losses import LOSSES
 from .base import HOLD, Choice
 
@@ -98,6 +97,8 @@ class GaussNewton(Choice):
         return dict(zip(self.keys, np.split(flat, np.cumsum(self.sizes)[:-1])))
 
     def before_render(self, ctx) -> dict[str, object]:
+        # the renderer's: imported once its variant is set (the daemon reads the choices first)
+        from ..jacobian import _latent_step, quantity
         i = ctx.iteration
         if i % EVERY:
             return {}
