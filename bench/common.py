@@ -75,6 +75,9 @@ class Settings:
     seeds: int = 0             # real_scenes: seeds (0: 3)
     tables: tuple[str, ...] = ()  # real_scenes: the tables run (empty: all)
     defaults_only: bool = False  # real_scenes: the plain loop and the defaults, nothing else
+    # real_scenes: a daemon job per seed with these choices turned on or off beside the
+    # defaults (NAME=VALUE, e.g. gauss_newton=on)
+    with_choices: dict[str, str] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------------------------

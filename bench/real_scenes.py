@@ -298,6 +298,11 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
         runs_ = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
                  lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
                                                                              p.iterations)))]
+        if settings.with_choices:
+            named = ", ".join(f"{k}={v}" for k, v in settings.with_choices.items())
+            runs_.append(lambda: log(run_daemon(
+                server, prep, f"daemon, {named}",
+                daemon_spec(prep, seed, p.iterations, settings.with_choices))))
         if p.on_off and has_choices():
             runs_.append(lambda: log(run_daemon(
                 server, prep, "daemon, plain preset",

@@ -180,6 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--defaults-only", action="store_true",
                    help="real_scenes: only the plain loop and the daemon's defaults per seed "
                    "(no choices turned off, no plain preset, no equal-work pairs)")
+    p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
+                   help="real_scenes: also a daemon job per seed with this choice set (e.g. "
+                   "gauss_newton=on), beside the defaults")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
@@ -189,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
                         film, args.iterations, args.seeds, tuple(args.tables),
-                        args.defaults_only)
+                        args.defaults_only,
+                        dict(c.split("=", 1) for c in args.with_choice))
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
