@@ -11,9 +11,11 @@ import numpy as np
 
 from .. import engine_api as api
 from .diagnosis import Kept
+# at import, not inside an iteration: imported there first, Mitsuba's AD integrators module
+# made that iteration's J draw other samples than every later one
+from .jacobian import Job, Linearization, Quantity, linearize, references
 
 if TYPE_CHECKING:
-    from .jacobian import Linearization, Quantity
     from .integrator import Chosen
     from .optimize import Optimization
     from .renders import Reference
@@ -140,7 +142,6 @@ class Context:
         """J of the renders in ``quantities`` (and the render noise and misfit) at the values
         the scene shows, at this iteration's spp, from samples drawn by ``seed``, in one round
         whatever the time (jacobian.linearize)."""
-        from .jacobian import Job, linearize, references  # the renderer's, with its variant
         loop = self._loop
         gains = {r.sensor: r.current for r in loop.records.values() if r.is_gain}
         job = Job(self.settings.loss, self.spp, seed, self.settings.clamp, 0.0)
