@@ -139,7 +139,9 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     choices = {c.name: c for c in job.choices}
     assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
     assert "eta_hold" not in choices
-    assert all(c.on and c.switchable and c.why for c in choices.values())
+    assert all(c.on == (name != "gauss_newton") and c.switchable and c.why
+               for name, c in choices.items())
+    assert "Adam" in choices["gauss_newton"].why  # off unless named: what it would do instead
     assert "relative" in choices["log_space"].why
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
     assert choices["eta_differences"].seconds_per_iteration >= 0

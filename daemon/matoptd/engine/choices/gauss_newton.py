@@ -79,7 +79,8 @@ class GaussNewton(Choice):
         self.why = (f"{', '.join(self.keys)} stepped by damped Gauss-Newton (J from two "
                     f"independent estimates) every {EVERY} iteration(s) in a trust region, "
                     "in place of Adam" if self.on else
-                    f"{', '.join(self.keys)} stepped by Adam")
+                    f"{', '.join(self.keys)} stepped by Adam (on: by damped Gauss-Newton in a "
+                    "trust region, from J's two independent estimates)")
         if self.on and steps:
             self.why += (f"; {steps} steps, {kept} kept, {undone} undone, radius "
                          f"{self.radius:.3g} difference steps")
