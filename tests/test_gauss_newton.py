@@ -82,6 +82,24 @@ def test_a_rise_beyond_the_noise_is_undone_and_a_fall_grows_the_radius():
     assert trust_region.judge(0.05, 0.1, 0.1, 2.0, 4.0) == (True, 4.0)
 
 
+def test_more_than_a_handful_of_components_or_a_texture_is_left_to_adam():
+    import types
+    from matoptd.engine.choices.gauss_newton import GaussNewton
+    from matoptd.engine.records import ParamRecord
+    settings = api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [], [],
+                               choices={"gauss_newton": "on"})
+    ctx = types.SimpleNamespace(settings=settings)
+    colour = (lambda key: ParamRecord(key, "rgb", 0.0, 1.0, 0.05, np.full(3, 0.5),
+                                      np.full(3, 0.5)))
+    texture = ParamRecord("t", "texture", 0.0, 1.0, 0.05, np.full(12, 0.5), np.full(12, 0.5))
+    few = {"a": colour("a"), "b": colour("b"), "t": texture}
+    assert GaussNewton(settings).select(ctx, few) == ["a", "b"]
+    many = {k: colour(k) for k in "abcde"}
+    choice = GaussNewton(settings)
+    assert choice.select(ctx, many) == []
+    assert choice.refused.startswith("15 scalar and colour components, more than 12")
+
+
 mi = pytest.importorskip("mitsuba")
 
 

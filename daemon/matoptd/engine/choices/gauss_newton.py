@@ -35,8 +35,9 @@ from ..losses import LOSSES
 from .base import HOLD, Choice
 
 EVERY = 1              # a step every EVERY-th iteration
-MAX_COMPONENTS = 12    # more, and J's passes cost more than the iterations they save
+MAX_COMPONENTS = 12    # J costs a pass per scalar or colour at every iteration: a handful
 RADIUS = 2.0           # the first step's radius, in difference steps (jacobian._latent_step)
+KINDS = ("scalar", "rgb")  # textures, grids, vertices and transforms keep Adam
 SEED = 104_729         # J's samples: the job's seed and the iteration, apart from the renders'
 
 
@@ -44,12 +45,14 @@ class GaussNewton(Choice):
     name = "gauss_newton"
 
     def select(self, ctx, records):
-        keys = [k for k, r in records.items() if r.scene is not None and r.size <= SMALL]
+        keys = [k for k, r in records.items() if r.scene is not None and r.size <= SMALL
+                and r.kind in KINDS]
         count = sum(records[k].size for k in keys)
         self.refused = ""
         if keys and count > MAX_COMPONENTS:
             self.refused = (f"{count} scalar and colour components, more than "
-                            f"{MAX_COMPONENTS}: J's passes would cost more than they save")
+                            f"{MAX_COMPONENTS}: J's passes at every iteration would cost many "
+                            "renders")
         elif keys and not LOSSES[ctx.settings.loss].least_squares:
             self.refused = f"the loss {ctx.settings.loss} is not least squares"
         return [] if self.refused else keys
