@@ -64,7 +64,7 @@ class Linearized:
     reference: np.ndarray  # Q_R
     spread: np.ndarray
     gradient: np.ndarray | None = None  # dL/du, 2 (K J)^T (I - R)
-    loss_variance: float = 0.0          # of one render's loss, from the render noise
+    gradient_noise: np.ndarray | None = None  # the gradient's variance from J's own noise
 
 
 @dataclass

@@ -72,16 +72,15 @@ def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
 def linearized(rows: list[Rows], loss: str) -> covariance.Linearized:
     p = rows[0].ja.shape[1]
     h, spread, q, qr = (np.zeros((p, p)) for _ in range(4))
-    gradient, variance = np.zeros(p), 0.0
+    gradient, gradient_noise = np.zeros(p), np.zeros(p)
     k = LOSSES[loss].step_noise
     for r in rows:
         # 2 K^T (I - R), J's estimates independent of the renders': unbiased
         gradient += (r.ka + r.kb).T @ r.misfit
-        # one render's loss sum c (I - R)^2 varies by sum c^2 (4 (I - R)^2 s^2 + 2 s^4)
-        variance += float(r.weight ** 2 @ (4 * np.maximum(r.residual, 0) * r.noise
-                                           + 2 * r.noise ** 2))
+        # its variance from J's own noise: (ka - kb)^2 estimates that of ka + kb
+        gradient_noise += ((r.ka - r.kb) ** 2).T @ r.misfit ** 2
         h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
         spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
         q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
         qr += 4 * covariance.residual_noise(r.ka, r.kb, r.noise, r.residual, r.weight)
-    return covariance.Linearized(h, q, qr, spread, gradient, variance)
+    return covariance.Linearized(h, q, qr, spread, gradient, gradient_noise)

@@ -8,10 +8,12 @@ each component's difference step, so that a log width and an albedo weigh alike)
 
     y(mu) = -(H_y + mu I)^+ g_y,    the least mu >= 0 with |y(mu)| <= radius,
 
-over the eigen-directions of H_y that stand out of its noise. A direction whose eigenvalue is
-within NOISE_LEVELS of its own standard error (or not positive) is singular or swamped by
-noise: the images do not say how far to go along it, so it is not stepped (``damped``). A
-component at a bound that the gradient pushes past it stays there; the rest are clipped.
+over the eigen-directions of H_y. A direction whose eigenvalue is within NOISE_LEVELS of its
+own standard error (or not positive) is swamped by noise: the images do not say how far to go
+along it, so it is damped (``damped``): its curvature is taken as that bound, and a step
+along it is no longer than the images vouch for. One singular with no noise (nothing bounds
+it) is not stepped. A component at a bound that the gradient pushes past it stays there; the
+rest are clipped.
 """
 
 from __future__ import annotations
@@ -51,9 +53,14 @@ def step(hessian: np.ndarray, gradient: np.ndarray, spread: np.ndarray, scale: n
         # each eigenvalue's standard error, the entries' errors taken as independent
         error = np.sqrt(np.einsum("ik,ij,jk->k", square, noise[np.ix_(free, free)] ** 2,
                                   square))
-        keep = (values > NOISE_LEVELS * error) & (values > 1e-12 * max(values.max(), 0.0))
-        damped = sorted({int(free[np.argmax(square[:, k])]) for k in np.flatnonzero(~keep)})
-        v, lam = vectors[:, keep], values[keep]
+        # a direction within its noise of flat is damped: its curvature taken as that bound,
+        # so a step along it is no longer than the images can vouch for
+        floor = NOISE_LEVELS * error
+        damped = sorted({int(free[np.argmax(square[:, k])])
+                         for k in np.flatnonzero(values <= floor)})
+        curvature = np.maximum(values, floor)
+        keep = curvature > 1e-12 * max(curvature.max(), 0.0)  # no bound at all: not stepped
+        v, lam = vectors[:, keep], curvature[keep]
         a = v.T @ g[free]
         y[free] = -(v @ (a / lam)) if lam.size else 0.0
         if np.linalg.norm(y) > radius:

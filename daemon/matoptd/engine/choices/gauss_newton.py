@@ -114,7 +114,9 @@ class GaussNewton(Choice):
             fit = ctx.linearize(quantities, ctx.settings.seed + SEED * i).fit
         n = len(self.point)
         here = {"hessian": fit.hessian[:n, :n], "gradient": fit.gradient[:n],
-                "spread": fit.spread[:n, :n], "noise": fit.noise[:n, :n] / 2}  # of 2 renders
+                "spread": fit.spread[:n, :n],
+                # the gradient's covariance: the render noise of two renders, J's own noise
+                "noise": fit.noise[:n, :n] / 2 + np.diag(fit.gradient_noise[:n])}
         if self.base is not None:  # the pending step's outcome
             fell, noise = trust_region.fall(self.fit["gradient"], here["gradient"],
                                             self.fit["noise"], here["noise"], self.delta)
