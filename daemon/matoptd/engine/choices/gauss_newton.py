@@ -19,8 +19,13 @@ rise undoes it and shrinks the radius (the next step is then taken from the star
 The losses the loop renders would judge it with far more noise: on a 32 px Cornell box at
 4 spp, successive losses varied by a factor of 5 while the model's predicted falls were a
 tenth of that. A direction the images do not resolve (J^T J's eigenvalue within its noise) is
-not stepped; the status names its component. Only for a handful of components (J costs a
-pass per parameter, a colour's three in one) and a least-squares loss.
+damped to what its noise vouches for; the status names its component. Only for a handful of
+components (J costs a pass per parameter, a colour's three in one) and a least-squares loss.
+
+Measured on the thesis's Table 4 scene (64x48, 60 iterations, 16 spp, seed 0, a loaded CPU):
+an iteration took 13 s against the defaults' 2.7 s, and the worst gate error ended at 1.29
+against 0.30 (defaults) and 0.24 (plain loop): J by differences under prbvolpath at 16 spp
+left every direction within its noise. Hence off unless named.
 """
 
 from __future__ import annotations
@@ -89,7 +94,7 @@ class GaussNewton(Choice):
                          f"{self.radius:.3g} difference steps")
         if self.on and self.damped:
             names = ", ".join(self._component(k) for k in self.damped)
-            self.why += f"; not stepped (the images do not resolve it): {names}"
+            self.why += f"; damped (the images do not resolve it): {names}"
 
     def _component(self, n: int) -> str:
         for key, size in zip(self.keys, self.sizes):
