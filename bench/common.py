@@ -78,6 +78,7 @@ class Settings:
     # real_scenes: a daemon job per seed with these choices turned on or off beside the
     # defaults (NAME=VALUE, e.g. gauss_newton=on)
     with_choices: dict[str, str] = field(default_factory=dict)
+    first_seed: int = 0        # real_scenes: the seeds run are first_seed, first_seed + 1, ...
 
 
 # ---------------------------------------------------------------------------------------------

@@ -293,7 +293,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
               f"{run.per_iteration:.3f} s/it, worst final "
               f"{max(run.final[k] for k in table.targets):.4f}", flush=True)
 
-    for seed in range(p.seeds):
+    for seed in range(settings.first_seed, settings.first_seed + p.seeds):
         # The plain preset beside them, in turn, for its errors (its cost: equal_work)
         runs_ = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
                  lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
@@ -314,7 +314,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
         names = sorted({c.name for r in runs if r.method == "daemon" for c in r.choices
                         if c.switchable and c.on})
         for name in names:
-            for seed in range(p.seeds):
+            for seed in range(settings.first_seed, settings.first_seed + p.seeds):
                 log(run_daemon(server, prep, f"daemon, {name} off",
                                daemon_spec(prep, seed, p.iterations, {name: "off"})))
     if p.on_off and has_choices():
@@ -322,7 +322,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon) ->
     if p.on_off and table.with_depth_64:
         deep = prepare(client, table, p, settings, {"max_depth": "64"},
                        (prep.ref_blob, prep.ref_path))
-        for seed in range(p.seeds):
+        for seed in range(settings.first_seed, settings.first_seed + p.seeds):
             log(run_daemon(server, deep, "daemon, max_depth 64 set",
                            daemon_spec(deep, seed, p.iterations)))
     return runs

@@ -183,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
                    help="real_scenes: also a daemon job per seed with this choice set (e.g. "
                    "gauss_newton=on), beside the defaults")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="real_scenes: the first seed run (the others follow it)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.only:
@@ -193,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
                         film, args.iterations, args.seeds, tuple(args.tables),
                         args.defaults_only,
-                        dict(c.split("=", 1) for c in args.with_choice))
+                        dict(c.split("=", 1) for c in args.with_choice), args.first_seed)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
