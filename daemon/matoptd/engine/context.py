@@ -132,12 +132,6 @@ class Context:
         """The loss of renders against a sensor's reference."""
         return self._loop.renders.image_loss(images, self.references[sensor])
 
-    @property
-    def previous_loss(self) -> float | None:
-        """The loss of the iteration before this one (None before the first)."""
-        last = self._loop.progress.last
-        return None if last.iteration < 0 else last.loss
-
     def linearize(self, quantities: list[Quantity], seed: int) -> Linearization:
         """J of the renders in ``quantities`` (and the render noise and misfit) at the values
         the scene shows, at this iteration's spp, from samples drawn by ``seed``, in one round
