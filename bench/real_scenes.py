@@ -298,8 +298,8 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
 
     seeds_began = time.time()
 
-    for seed in range(p.seeds):
-        if seed and deadline and time.time() + (time.time() - seeds_began) / seed > deadline:
+    for seed in range(settings.first_seed, settings.first_seed + p.seeds):
+        if seed > settings.first_seed and deadline and time.time() + (time.time() - seeds_began) / (seed - settings.first_seed) > deadline:
             print(f"bench: real_scenes {table.name}: {seed} of {p.seeds} seed(s), the next "
                   "would pass the time cap", flush=True)
             break
@@ -307,6 +307,11 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
         runs_ = [lambda: log(run_plain(prep, p, seed, variant, p.iterations)),
                  lambda: log(run_daemon(server, prep, "daemon", daemon_spec(prep, seed,
                                                                              p.iterations)))]
+        if settings.with_choices:
+            named = ", ".join(f"{k}={v}" for k, v in settings.with_choices.items())
+            runs_.append(lambda: log(run_daemon(
+                server, prep, f"daemon, {named}",
+                daemon_spec(prep, seed, p.iterations, settings.with_choices))))
         if p.on_off and has_choices():
             runs_.append(lambda: log(run_daemon(
                 server, prep, "daemon, plain preset",
@@ -318,7 +323,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
         names = sorted({c.name for r in runs if r.method == "daemon" for c in r.choices
                         if c.switchable and c.on})
         for name in names:
-            for seed in range(p.seeds):
+            for seed in range(settings.first_seed, settings.first_seed + p.seeds):
                 log(run_daemon(server, prep, f"daemon, {name} off",
                                daemon_spec(prep, seed, p.iterations, {name: "off"})))
     if p.on_off and has_choices():
@@ -326,7 +331,7 @@ def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
     if p.on_off and table.with_depth_64:
         deep = prepare(client, table, p, settings, {"max_depth": "64"},
                        (prep.ref_blob, prep.ref_path))
-        for seed in range(p.seeds):
+        for seed in range(settings.first_seed, settings.first_seed + p.seeds):
             log(run_daemon(server, deep, "daemon, max_depth 64 set",
                            daemon_spec(deep, seed, p.iterations)))
     return runs

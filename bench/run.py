@@ -196,6 +196,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splice", type=Path, metavar="DIR",
                    help="copy a --gpu run's output DIR to bench/results/gpu/ and its section "
                    "into docs/benchmarks.md")
+    p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
+                   help="real_scenes: also a daemon job per seed with this choice set (e.g. "
+                   "gauss_newton=on), beside the defaults")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="real_scenes: the first seed run (the others follow it)")
     args = p.parse_args(argv)
     if args.splice:
         return gpu_run.splice(args.splice, DOCS)
@@ -211,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(args.out.resolve(), args.quick, work, args.thesis_size,
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
                         film, args.iterations, args.seeds, tuple(args.tables),
-                        args.defaults_only, args.cost_only, args.deadline)
+                        args.defaults_only, args.cost_only, args.deadline,
+                        dict(c.split("=", 1) for c in args.with_choice), args.first_seed)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None

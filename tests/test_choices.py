@@ -33,7 +33,8 @@ def _settings(**choices: str) -> api.JobSettings:
 
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
-    assert all(_settings().choice_on(c.name) for c in REGISTRY)
+    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == ["gauss_newton"]
+    assert _settings(gauss_newton="on").choice_on("gauss_newton")
     off = _settings(eta_differences="off")
     assert not off.choice_on("eta_differences") and off.choice_on("log_space")
     plain = _settings(all="off", depth="on")
@@ -138,7 +139,9 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     choices = {c.name: c for c in job.choices}
     assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
     assert "eta_hold" not in choices
-    assert all(c.on and c.switchable and c.why for c in choices.values())
+    assert all(c.on == (name != "gauss_newton") and c.switchable and c.why
+               for name, c in choices.items())
+    assert "Adam" in choices["gauss_newton"].why  # off unless named: what it would do instead
     assert "relative" in choices["log_space"].why
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
     assert choices["eta_differences"].seconds_per_iteration >= 0

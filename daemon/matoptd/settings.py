@@ -54,10 +54,14 @@ CHOICES = {
                        "images while its surface is near-specular",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
                 "steadily",
+    "gauss_newton": "a handful of scalars and colours stepped by damped Gauss-Newton in a "
+                    "trust region (J from two independent estimates) in place of Adam; off "
+                    "unless turned on",
     "frozen": "each iteration's render, loss and backward pass recorded once and replayed "
               "(dr.freeze), and so are eta's difference renders and the standard errors' "
               "passes: no Python tracing per iteration; same results",
 }
+OFF_UNLESS_NAMED = ("gauss_newton",)  # choices a job turns on by name (or with ALL_CHOICES)
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")
@@ -179,8 +183,10 @@ class JobSettings:
         return self.choice_value(name) != "off"
 
     def choice_value(self, name: str) -> str:
-        """The value given for the choice (by name, else by ALL_CHOICES), "on" if none."""
-        return self.choices.get(name, self.choices.get(ALL_CHOICES, "on"))
+        """The value given for the choice (by name, else by ALL_CHOICES), "on" if none (but
+        "off" for those OFF_UNLESS_NAMED)."""
+        return self.choices.get(name, self.choices.get(
+            ALL_CHOICES, "off" if name in OFF_UNLESS_NAMED else "on"))
 
 
 def read_values(values: Values, read: Callable[[str], bytes], what: str) -> np.ndarray:

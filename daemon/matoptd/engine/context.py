@@ -10,6 +10,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import engine_api as api
+from .diagnosis import Kept
+# at import, not inside an iteration: imported there first, Mitsuba's AD integrators module
+# made that iteration's J draw other samples than every later one
+from .jacobian import Job, Linearization, Quantity, linearize, references
 
 if TYPE_CHECKING:
     from .integrator import Chosen
@@ -101,6 +105,14 @@ class Context:
         """theta_i's value of ``key`` in the space it is stepped in."""
         return self._loop.maps.encode(key, self._loop.records[key].current)
 
+    def encoded(self, key: str, value: np.ndarray) -> np.ndarray:
+        """u of a value v of ``key`` (flat), as the maps in force encode it."""
+        return self._loop.maps.encode(key, value)
+
+    def kept(self, key: str) -> Kept:
+        """The range ``key``'s value is kept in, its floor, whether it is stepped in log space."""
+        return self._loop.maps.kept(self._loop.records[key])
+
     def value(self, key: str) -> np.ndarray:
         """theta_i's value of ``key`` (v)."""
         return self._loop.records[key].current
@@ -129,6 +141,16 @@ class Context:
     def image_loss(self, images: list, sensor: int):
         """The loss of renders against a sensor's reference."""
         return self._loop.renders.image_loss(images, self.references[sensor])
+
+    def linearize(self, quantities: list[Quantity], seed: int) -> Linearization:
+        """J of the renders in ``quantities`` (and the render noise and misfit) at the values
+        the scene shows, at this iteration's spp, from samples drawn by ``seed``, in one round
+        whatever the time (jacobian.linearize)."""
+        loop = self._loop
+        gains = {r.sensor: r.current for r in loop.records.values() if r.is_gain}
+        job = Job(self.settings.loss, self.spp, seed, self.settings.clamp, 0.0)
+        return linearize(self.scene, self.params, self.integrator, self.chosen.name,
+                         quantities, references(self.references, gains), job, fixed=True)
 
     def render(self, values: dict[str, np.ndarray], sensor: int, spp: int) -> np.ndarray:
         """A primal render with the parameters set to ``values`` (numpy, off the graph)."""

@@ -63,6 +63,8 @@ class Linearized:
     noise: np.ndarray      # Q, one iteration's gradient
     reference: np.ndarray  # Q_R
     spread: np.ndarray
+    gradient: np.ndarray | None = None  # dL/du, 2 (K J)^T (I - R)
+    gradient_noise: np.ndarray | None = None  # the gradient's variance from J's own noise
 
 
 @dataclass

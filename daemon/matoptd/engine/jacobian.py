@@ -39,6 +39,8 @@ import mitsuba as mi
 import numpy as np
 
 from . import covariance, frozen, parameters, split_samples
+from .diagnosis import Kept
+from .renders import Reference
 from .rows import linearized, rows
 
 
@@ -56,6 +58,12 @@ MODES = ("mean level", "left-right ramp", "top-bottom ramp")
 
 
 BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp follows, down to 1)
+
+
+# ... but at least the time of FLOOR of the job's renders: a tenth of a short job of small
+# frozen iterations (a few seconds at 32 px) left half the calibration cases' sigma_t and
+# roughness "too noisy to estimate in the time allowed".
+FLOOR = 32
 
 
 # ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
@@ -125,6 +133,22 @@ class Job:
     seconds: float              # its optimizing time so far (J may take BUDGET of it)
 
 
+def quantity(key: str, value: np.ndarray, kept: Kept, channels: int = 0,
+             shape: tuple[int, ...] = ()) -> Quantity:
+    """A parameter as J sees it, at ``value``, in the coordinates it is stepped in."""
+    eta = parameters.dielectric_eta(key)  # the log_space choice's kept range is v's
+    return Quantity(key, value, kept.log, kept.lo, kept.hi, kept.floor, channels, eta, eta,
+                    shape)
+
+
+def references(refs: dict[int, Reference], gains: dict[int, np.ndarray]
+               ) -> dict[int, Sensor]:
+    """The references as J reads them, with the exposure gain of each gained sensor."""
+    return {s: Sensor(np.asarray(ref.image), None if ref.weight is None
+                      else np.asarray(ref.weight), gains.get(s), ref.name)
+            for s, ref in refs.items()}
+
+
 @dataclass
 class _Component:
     name: str       # for notes: "key", "key[1]", "key (mean level, channel 0)", "gain of x[2]"
@@ -186,25 +210,27 @@ class Linearization:
 
 def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
               integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
-              job: Job, freeze: bool = False) -> Linearization:
+              job: Job, freeze: bool = False, fixed: bool = False) -> Linearization:
     """``_linearize`` with its passes frozen (split_samples.Frozen) where ``freeze`` and the
     integrator allows, else unfrozen; a frozen estimate that fails is made again unfrozen,
-    its notes saying why."""
+    its notes saying why. ``fixed``: as ``_linearize``'s."""
     why = unfrozen(integrator, integrator_name) if freeze else ""
     if not freeze or why:
-        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job)
+        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
+                          fixed=fixed)
         out.notes += [f"standard errors: J's passes not frozen: {why}"] if why else []
         return out
     try:
         out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
-                         split_samples.Frozen())
+                         split_samples.Frozen(), fixed)
     except Exception as exc:  # noqa: BLE001 - the unfrozen passes give the same estimate
         while exc.__cause__ is not None:  # Dr.Jit's says "see above": the cause says what
             exc = exc.__cause__
         for q in quantities:  # a pass may have failed with its leaves or sides set
             params[q.key] = parameters.assign(params[q.key], q.value)
         params.update()
-        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job)
+        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
+                          fixed=fixed)
         out.notes.append(f"standard errors: J's passes not frozen: recording them failed "
                          f"({type(exc).__name__}: {exc})")
     return out
@@ -222,9 +248,13 @@ def unfrozen(integrator: mi.Integrator, integrator_name: str) -> str:
 
 def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
                integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
-               job: Job, recorded: split_samples.Frozen | None = None) -> Linearization:
+               job: Job, recorded: split_samples.Frozen | None = None, fixed: bool = False
+               ) -> Linearization:
     """J, the render noise and the residual at the values ``params`` holds (set by the
     caller to ``quantities``' values), as H, Q and Q_R.
+
+    ``fixed``: J at the job's spp in one round, whatever the time (a step taken from it must
+    be the same on any machine, and after a checkpoint).
 
     J is first estimated at the spp that half the budget allows (_samples); a component
     whose J^T J is then less than SIGNAL times its own noise gets more samples, four times as
@@ -244,9 +274,10 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
                    for n in (0, 1)] for s in sensors}
     full = (time.perf_counter() - began) / (2 * len(sensors))
     began_one = time.perf_counter()
-    _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
+    if not fixed:
+        _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
-    budget = min(BUDGET * job.seconds, BUDGET_CAP)
+    budget = min(max(BUDGET * job.seconds, FLOOR * full * len(sensors)), BUDGET_CAP)
     split = split_samples.shares_primal(integrator)
 
     def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
@@ -259,7 +290,8 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
 
     count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
                                        comps, by_key, params))
-    spp = _samples(budget / 2 - (time.perf_counter() - began), count, cost, job.spp)
+    spp = job.spp if fixed else _samples(budget / 2 - (time.perf_counter() - began), count,
+                                         cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
     samples = np.zeros(len(comps))
@@ -297,7 +329,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
         then = (time.perf_counter() - round_began) * (
             len(_passes(short, comps, by_key, params)) / len(passes)) * (
             cost(4 * spp) / cost(spp))
-        if not short or time.perf_counter() - began + then > budget:
+        if fixed or not short or time.perf_counter() - began + then > budget:
             break
         todo, spp = short, spp * 4
     return Linearization(comps, fit, time.perf_counter() - began,

@@ -29,6 +29,7 @@ class Rows:
     weight: np.ndarray    # the loss's own weight of each row (multiscale: its full level's)
     noise: np.ndarray
     residual: np.ndarray
+    misfit: np.ndarray    # the mean of the two renders less the reference
 
 
 def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
@@ -65,16 +66,21 @@ def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
     p = ja.shape[-1]
     flat = (lambda x: x.reshape(-1, p))
     return Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(), noise.ravel(),
-                 residual.ravel())
+                residual.ravel(), ((a + b) / 2 - ref).ravel())
 
 
 def linearized(rows: list[Rows], loss: str) -> covariance.Linearized:
     p = rows[0].ja.shape[1]
     h, spread, q, qr = (np.zeros((p, p)) for _ in range(4))
+    gradient, gradient_noise = np.zeros(p), np.zeros(p)
     k = LOSSES[loss].step_noise
     for r in rows:
+        # 2 K^T (I - R), J's estimates independent of the renders': unbiased
+        gradient += (r.ka + r.kb).T @ r.misfit
+        # its variance from J's own noise: (ka - kb)^2 estimates that of ka + kb
+        gradient_noise += ((r.ka - r.kb) ** 2).T @ r.misfit ** 2
         h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
         spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
         q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
         qr += 4 * covariance.residual_noise(r.ka, r.kb, r.noise, r.residual, r.weight)
-    return covariance.Linearized(h, q, qr, spread)
+    return covariance.Linearized(h, q, qr, spread, gradient, gradient_noise)

@@ -22,7 +22,7 @@ from ..range_notes import at_bound
 from . import covariance, parameters
 from .diagnosis import DECIDER, DECIDERS, Kept, widest
 from .jacobian import (BUDGET, MAX_COMPONENTS, Job, Linearization, Quantity, Sensor, _Component,
-                       _latent_step, basis, linearize)
+                       _latent_step, basis, linearize, quantity, references)
 from .losses import LOSSES
 from .optimize import Best, Optimization, schedule_factor
 
@@ -255,10 +255,8 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
     gained = {r.sensor for r in opt.records.values() if r.is_gain}
     for which, it in sorted(chosen, key=lambda c: c[0] != "last"):
         quantities, skipped = _quantities(opt, it, kinds, shapes)
-        sensors = {s: Sensor(np.asarray(ref.image), None if ref.weight is None
-                             else np.asarray(ref.weight),
-                             it.gains.get(s) if s in gained else None, ref.name)
-                   for s, ref in opt.renders.references.items()}
+        sensors = references(opt.renders.references,
+                             {s: g for s, g in it.gains.items() if s in gained})
         kept.append((which, it, quantities, sensors, skipped))
     apart = [k for k in kept[1:] if not _near(k[2], kept[0][2])] if kept else []
     job = Job(opt.settings.loss, opt.spp, opt.settings.seed, opt.settings.clamp,
@@ -309,10 +307,8 @@ def _quantities(opt: Optimization, kept: Best, kinds: dict[str, str],
             skipped.append(f"{key}: no standard error ({value.size} components; only scalars, "
                            "colours, textures and grids are estimated)")
             continue
-        eta = parameters.dielectric_eta(key)  # the log_space choice's kept range is v's
-        out.append(Quantity(key, value, k.log, k.lo, k.hi, k.floor,
-                            max(opt.records[key].channels, 1) if summarized else 0, eta, eta,
-                            tuple(shapes.get(key, ())) if summarized else ()))
+        out.append(quantity(key, value, k, max(opt.records[key].channels, 1) if summarized
+                            else 0, tuple(shapes.get(key, ())) if summarized else ()))
     return out, skipped
 
 

@@ -43,6 +43,7 @@ EVERY = 4     # once eta has settled, its difference every EVERY-th iteration
 
 class EtaDifferences(Choice):
     name = "eta_differences"
+    yields_to = ("gauss_newton",)  # which steps eta by Gauss-Newton, while on
     wants_images = True
     after = ("exposure_gains", "eta_hold")  # the gained renders; no differences while held
 

@@ -30,6 +30,7 @@ HOLD_SHARE = 0.5
 
 class EtaHold(Choice):
     name = "eta_hold"
+    yields_to = ("gauss_newton",)  # which steps eta by Gauss-Newton, while on
 
     def select(self, ctx, records):
         keys = [k for k, r in records.items() if r.scene is not None]
