@@ -26,7 +26,6 @@ finer than a pixel's view (0.14 degrees at 36 degrees over 256 px): a GPU's work
 from __future__ import annotations
 
 import io
-import math
 import time
 from dataclasses import dataclass, field
 

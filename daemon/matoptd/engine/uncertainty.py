@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import engine_api as api
 from ..range_notes import at_bound
-from . import covariance, parameters
+from . import covariance
 from .diagnosis import DECIDER, DECIDERS, Kept, widest
 from .jacobian import (BUDGET, MAX_COMPONENTS, Job, Linearization, Quantity, Sensor, _Component,
                        _latent_step, basis, linearize, quantity, references)
