@@ -23,7 +23,7 @@ import numpy as np
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
-from scenes import camera, create_scene, exr, studio
+from scenes import create_scene, exr
 from stiff import glass, medium_ball, principled_ball
 
 KINDS = ("reflectance", "roughness", "eta", "medium albedo", "sigma_t",
@@ -50,21 +50,9 @@ def textured_ball(res: int = 32) -> tuple[str, dict[str, bytes]]:
     texels = np.full((4, 4, 3), 0.6, dtype=np.float32)
     texels[:, :2] = (0.7, 0.35, 0.2)
     texels[::2, ::2] *= 0.8
-    return f"""<scene version="3.0.0">
-    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
-    {camera(res, "0, 0.6, 4")}
-    {studio(0.6)}
-    <shape type="sphere" id="ball">
-        <bsdf type="principled">
-            <texture type="bitmap" name="base_color">
-                <string name="filename" value="albedo.exr"/>
-                <string name="filter_type" value="nearest"/>
-            </texture>
-            <float name="roughness" value="0.3"/>
-        </bsdf>
-    </shape>
-</scene>
-""", {"albedo.exr": exr(texels)}
+    texture = ('<texture type="bitmap" name="base_color"><string name="filename" '
+               'value="albedo.exr"/><string name="filter_type" value="nearest"/></texture>')
+    return principled_ball(0.3, res, texture), {"albedo.exr": exr(texels)}
 
 
 TEXTURED = textured_ball(32)

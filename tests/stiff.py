@@ -62,14 +62,16 @@ def glass(eta: float, alpha: float = 0.2, res: int = 16) -> str:
 """
 
 
-def principled_ball(roughness: float, res: int = 24) -> str:
+def principled_ball(roughness: float, res: int = 24,
+                    base_color: str = '<rgb name="base_color" value="0.41, 0.82, 0.99"/>') -> str:
+    """A principled ball in the studio; ``base_color`` its XML (a texture, say)."""
     return f"""<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="4"/></integrator>
     {camera(res, "0, 0.6, 4")}
     {studio(0.6)}
     <shape type="sphere" id="ball">
         <bsdf type="principled">
-            <rgb name="base_color" value="0.41, 0.82, 0.99"/>
+            {base_color}
             <float name="roughness" value="{roughness}"/>
         </bsdf>
     </shape>
