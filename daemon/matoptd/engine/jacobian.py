@@ -60,10 +60,10 @@ MODES = ("mean level", "left-right ramp", "top-bottom ramp")
 BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp follows, down to 1)
 
 
-# ... but at least the time of FLOOR of the job's renders: a tenth of a short job of small
-# frozen iterations (a few seconds at 32 px) left half the calibration cases' sigma_t and
-# roughness "too noisy to estimate in the time allowed".
-FLOOR = 32
+# ... but at least the time of FLOOR of the job's renders, up to FLOOR_SHARE of the job: a
+# tenth of a short job of small frozen iterations (a few seconds at 32 px) left half the
+# calibration cases' sigma_t and roughness "too noisy to estimate in the time allowed".
+FLOOR, FLOOR_SHARE = 32, 0.25
 
 
 # ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
@@ -277,7 +277,8 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
     if not fixed:
         _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
-    budget = min(max(BUDGET * job.seconds, FLOOR * full * len(sensors)), BUDGET_CAP)
+    budget = min(max(BUDGET * job.seconds,
+                     min(FLOOR * full * len(sensors), FLOOR_SHARE * job.seconds)), BUDGET_CAP)
     split = split_samples.shares_primal(integrator)
 
     def render(s: int) -> float:  # its time at 1 spp plus a share of the rest by its spp
