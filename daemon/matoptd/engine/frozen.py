@@ -168,10 +168,6 @@ class FrozenLoss:
                 dr.clear_grad(leaf)
         refs = [ctx.references[sensor] for _, sensor in group]
         before = self.fn.n_recordings
-        if not (self.recordings or self.replayed):
-            # The job's start leaves young garbage; while it lives, Dr.Jit sees the scene's
-            # inputs laid out otherwise and records anew (about one job in five, measured).
-            gc.collect(1)
         sensors = tuple(s for _, s in group)
         fn = self.fn if self.taken or sensors in self.rendered else _group_loss
         self.rendered.add(sensors)
