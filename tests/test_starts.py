@@ -241,13 +241,18 @@ def test_every_surface_says_several_answers(several, cli_env, tmp_path):
     assert exported["reasons"][HIDDEN] == [reason]
 
 
+# Enough that the pause lands before the job ends (30 iterations at 32 px took 0.15 s, and
+# the pause came after them).
+ITERATIONS = 600
+
+
 def test_a_job_paused_as_its_probes_run_keeps_them_and_their_verdict(stubs, quads):
     """Paused at once, the job's probes finish in the call that loads it, and the checkpoint
     the pause takes holds them: the resumed job runs none again, its history counts each
     iteration once, and its result still says where the probes found several answers."""
     scene, ref = quads
     job = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
-        scene=scene.name, references=[ref], iterations=30, spp=8, starts=2,
+        scene=scene.name, references=[ref], iterations=ITERATIONS, spp=8, starts=2,
         parameters=[pb.ParameterSpec(key=HIDDEN, initial_value=[0.3]),
                     pb.ParameterSpec(key=SEEN, initial_value=[0.5] * 3)])))
     stubs.jobs.PauseJob(pb.PauseJobRequest(name=job.name))
@@ -256,7 +261,7 @@ def test_a_job_paused_as_its_probes_run_keeps_them_and_their_verdict(stubs, quad
     done = wait_state(stubs, job.name, (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED))
     assert done.state == pb.JOB_STATE_SUCCEEDED, done.error
     assert sum(n.startswith("probe 1 of 2") for n in done.notes) == 1, done.notes
-    assert [h.iteration for h in _history(stubs, job.name)] == list(range(30))
+    assert [h.iteration for h in _history(stubs, job.name)] == list(range(ITERATIONS))
     result = stubs.jobs.GetJobResult(pb.GetJobResultRequest(name=job.name))
     hidden = next(p for p in result.parameters if p.key == HIDDEN)
     assert hidden.interval_reason[0].startswith("the images allow several answers: 0.3 ")

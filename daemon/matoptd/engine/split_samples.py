@@ -38,7 +38,11 @@ from . import frozen
 def shares_primal(integrator: mi.Integrator) -> bool:
     """Whether the integrator's forward mode is RBIntegrator's (the projective integrators add
     boundary terms of their own, rendered apart)."""
-    return type(integrator).render_forward is RBIntegrator.render_forward
+    # by name: Mitsuba's AD integrators imported again (another module's import of them)
+    # make classes of their own, whose methods are not RBIntegrator's objects
+    method = type(integrator).render_forward
+    return (method is RBIntegrator.render_forward
+            or getattr(method, "__qualname__", "") == "RBIntegrator.render_forward")
 
 
 @dataclass
