@@ -275,3 +275,22 @@ def test_a_daemon_job_runs_frozen_with_the_history_of_the_unfrozen_one(stubs):
     # the standard errors' passes follow the choice: frozen, and with it off unfrozen
     assert any(n.startswith("standard errors: J's passes frozen") for n in frozen.notes)
     assert not any("J's passes" in n for n in unfrozen.notes)
+
+
+def test_a_loop_dropped_is_freed_at_once_with_its_ad_graph(optimize):
+    """Nothing a job's loop holds refers back to it (its context, renders and frozen
+    function hold it weakly): dropped, it goes at once rather than when Python's collector
+    next runs, which may be inside a later job's AD traversal (J's forward passes refused
+    the edges of a loop freed there)."""
+    import gc
+    import weakref
+    job = Job(optimize, _cornell, _settings([RED, GREEN])).run(3)
+    gone = weakref.ref(job.loop)
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        del job
+        assert gone() is None
+    finally:
+        if collecting:
+            gc.enable()

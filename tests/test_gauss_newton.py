@@ -4,7 +4,6 @@ far off) that it recovers, continued from a checkpoint along the same trajectory
 
 from __future__ import annotations
 
-import gc
 
 import numpy as np
 import pytest
@@ -111,10 +110,6 @@ mi = pytest.importorskip("mitsuba")
 def optimize():
     mi.set_variant("llvm_ad_rgb")
     from matoptd.engine import optimize
-    # Loops of the tests before (an Optimization and its Context refer to each other) hold
-    # their AD graphs until collected; freed in the middle of J's forward pass, they leave
-    # edges that Dr.Jit refuses to cross there.
-    gc.collect()
     return optimize
 
 

@@ -279,3 +279,26 @@ def test_a_job_that_ended_cannot_be_paused_resumed_or_cancelled(phase):
     with pytest.raises(Exception) as err:
         d.control.cancel("alice", "jobs/a")
     assert str(err.value) == f"job 'jobs/a' already ended ({phase.name})"
+
+
+@pytest.mark.parametrize("turn", [0.0, 0.005])
+def test_a_niced_server_gets_the_cpu_when_a_client_waits_on_a_job(monkeypatch, turn):
+    """Beside CPU workers the server runs niced below them: the lane leaves it the CPU
+    (``State.server_turn``) before a job's load (the CreateJob answer) and after its first
+    iteration (that event), with the worker idle; at 0 (GPU workers) never."""
+    import matoptd.scheduling.lanes as lanes
+    d = Daemon()
+    d.state.server_turn = turn
+    said: list[str] = []
+    monkeypatch.setattr(lanes.time, "sleep", lambda s: said.append(f"sleep {s}"))
+    d.worker.before = lambda method, args: said.append(method)
+    d.control.create(job("a", iterations=5), None)
+    d.run()
+    steps = said.index("step")
+    if turn:
+        assert said[said.index("start") - 1] == f"sleep {turn}"
+        assert said[steps + 1] == f"sleep {turn}"  # after the first step alone
+        assert said.count(f"sleep {turn}") == 2
+    else:
+        assert not [s for s in said if s.startswith("sleep")]
+    assert d.store.get_job("jobs/a").phase is Phase.SUCCEEDED

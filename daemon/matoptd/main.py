@@ -21,7 +21,7 @@ from grpc_health.v1 import health_pb2
 from matopt_api.costs import format_size
 
 from . import __version__, logs
-from .options import LIMITS, SERVER_NICE, SERVER_NICE_SHARED, parse_args
+from .options import LIMITS, SERVER_NICE, SERVER_NICE_SHARED, SERVER_TURN_S, parse_args
 from .scheduling.control import JobControl
 from .scheduling.lanes import Lanes
 from .scheduling.recovery import Recovery
@@ -110,6 +110,7 @@ async def serve(args: argparse.Namespace) -> None:
     if nice > 0:
         devices.lower_priority(nice, lanes.thread_ids())
         log.info("server threads %d nice levels below the workers", nice)
+        lanes.state.server_turn = SERVER_TURN_S if beside else 0.0
     backend = Backend(store, lanes, JobControl(lanes.state, lanes.recovery),
                           lanes.state.events, limits)
     server, health_servicer, names = app.build(backend, auth,

@@ -27,6 +27,9 @@ METRICS_HOST = "127.0.0.1"  # where --metrics-port serves when it names no host
 # Nice levels of the server's threads below the workers', so that rendering goes first: the
 # lowest where CPU workers render on the server's own cores, else SERVER_NICE (server_nice).
 SERVER_NICE, SERVER_NICE_SHARED = 10, 19
+# ... and where it is niced beside CPU workers, the seconds a lane leaves the CPU to it at a
+# job's load and first iteration (scheduling.State.server_turn).
+SERVER_TURN_S = 0.005
 
 
 @dataclass(frozen=True)

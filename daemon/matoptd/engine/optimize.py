@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 
 import drjit as dr
 import mitsuba as mi
@@ -90,10 +91,13 @@ class Optimization:
         params = mi.traverse(scene)
         self.records = _records(params, settings, initial or {}, truth or {})
         params.keep([k for k in self.records])
+        # Its parts hold the loop weakly: a cycle would keep the job's AD graph alive until
+        # Python's collector runs, which it may do inside a later job's AD traversal.
+        me = weakref.proxy(self)
         self.renders = Renders(scene, params, dict(sorted(references.items())), settings,
-                               self.loss, lambda s, images: self.hooks.on_images(s, images),
-                               self._apply)
-        self.ctx = Context(self)
+                               self.loss, lambda s, images: me.hooks.on_images(s, images),
+                               lambda: me._apply())
+        self.ctx = Context(me)
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         self.progress = Progress()
         self.initial: dict[str, np.ndarray] = {}

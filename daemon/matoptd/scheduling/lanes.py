@@ -15,6 +15,7 @@ import concurrent.futures
 import logging
 import math
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -208,6 +209,7 @@ class Lane:
                 self._done(action)
 
     def _load(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        self._server_turn()  # the CreateJob or ResumeJob that led here is answered first
         started = engine.start(record.name, record.settings,
                                self.store.checkpoints.read(record.name))
         with self.state.lock:
@@ -250,8 +252,11 @@ class Lane:
         self.state.events.publish(record.name, [*progress.records, snapshot])
 
     def _step(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        first = record.iteration == 0
         progress = engine.step(record.name, action.n)
         self._progressed(record, progress)
+        if first:
+            self._server_turn()  # the first iteration's event goes out before the next
         with self.state.lock:
             job = self.scheduler.jobs[record.name]
         if progress.done:
@@ -264,6 +269,13 @@ class Lane:
             self.store.checkpoints.write(record.name, engine.checkpoint(record.name))
             record.checkpoint, job.checkpointed = record.iteration, now
         self._done(action, len(progress.records))
+
+    def _server_turn(self) -> None:
+        """The CPU left to the server for a moment (``State.server_turn``), the worker
+        idle: what a client waits on goes out now rather than when the worker next pauses
+        (a job's first event came 60-120 ms after its iteration on 2 cores, 20 ms with it)."""
+        if self.state.server_turn:
+            time.sleep(self.state.server_turn)
 
     def _evict(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
         """The job waits for its next slice: the worker's memory goes back, and the job

@@ -89,6 +89,10 @@ class State:
         self.wake = threading.Condition(self.lock)
         self.stopping = False
         self.stopped = threading.Event()  # set with ``stopping``: cuts waits short
+        # Seconds a lane leaves the CPU to the server when a client waits on a job (its load,
+        # its first iteration): beside CPU workers the server runs niced below them and would
+        # answer only when the worker next pauses (main.py sets it; 0: it need not).
+        self.server_turn = 0.0
 
     def record(self, name: str, owner: str | None = None) -> JobRecord:
         """The job's record: the scheduler's while it holds the job (the one that changes),
