@@ -150,7 +150,7 @@ def test_a_grid_albedo_and_sigma_t_are_named_together(stubs):
                                                          sensors=[0], seed=3)).images[0]
     grid, sigma_t = "cloud.interior_medium.albedo.data", "cloud.interior_medium.sigma_t.value.value"
     done, result = run(stubs, pb.JobSpec(
-        scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)], iterations=60,
+        scene=scene.name, references=[pb.Reference(blob=ref.exr_blob)], iterations=120,
         parameters=[pb.ParameterSpec(key=grid, initial_blob=_npy_blob(stubs, grid_values)),
                     pb.ParameterSpec(key=sigma_t, initial_value=[0.3])]))
     assert any(n.startswith(f"{grid}: its mean level is known to +-") for n in done.notes)
