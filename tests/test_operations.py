@@ -193,7 +193,9 @@ def test_sighup_reloads_tokens_and_running_jobs_go_on(operated):
 
 def test_metrics_during_a_job(operated):
     alice = Stubs(operated.address, TOKENS["alice"])
-    job = small_job(alice, 30)
+    # Frozen iterations of 32 px take ~10 ms: long enough to be running at the scrape.
+    n = 600
+    job = small_job(alice, n)
     wait_iteration(alice, job.name, 3)
     now = scrape(operated)
     at = alice.jobs.GetJob(pb.GetJobRequest(name=job.name)).iteration  # at least the scrape's
@@ -217,7 +219,7 @@ def test_metrics_during_a_job(operated):
     done = wait_state(alice, job.name, {pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED})
     assert done.state == pb.JOB_STATE_SUCCEEDED
     after = scrape(operated)
-    assert after['matoptd_worker_iterations_total{worker="workers/0"}'] >= iterations + 30 - at
+    assert after['matoptd_worker_iterations_total{worker="workers/0"}'] >= iterations + n - at
     assert after['matoptd_jobs{phase="succeeded"}'] >= 1
     refused = '{code="UNAUTHENTICATED",method="matopt.v1.ServerService/GetServerInfo"}'
     stranger = Stubs(operated.address, "no-such-token-0123456789")
