@@ -19,15 +19,15 @@ fit that very image.
 
 Both sides clip to the ranges the daemon lists (besides the thesis's eta bound on the plain
 side). The daemon job sets only the parameters, their starts, the ground truth, the seed, the
-iteration count and the plain loop's spp (both sides render the same samples per iteration;
-the daemon's default of 16 gave Table 4's defaults twice the plain loop's 8). Where the daemon has named choices (``Job.choices``), each one in force is
-also run turned off (``JobSpec.choices``: NAME "off"), one at a time, and the ``plain`` preset
-(no choices, constant rate, the plain loop's rates, spp and bounds) gives the cost of an
-iteration at equal work: besides its runs in turn with the plain loop and the defaults for
-each seed, EQUAL_PAIRS short runs of it and of the plain loop back to back, alternating, whose
-median ratio is the figure (the machine's drift over a table's hour stays out of it). Table 2
-also runs with ``max_depth`` 64 set on the scene, the depth the daemon used to cap an
-unbounded one at.
+iteration count and the plain loop's spp (both sides render the same samples per iteration; the
+daemon's default of 16 gave Table 4's defaults twice the plain loop's 8). Where the daemon has
+named choices (``Job.choices``), each one in force is also run turned off (``JobSpec.choices``:
+NAME "off"), one at a time, and the ``plain`` preset (no choices, constant rate, the plain
+loop's rates, spp and bounds) gives the cost of an iteration at equal work: besides its runs in
+turn with the plain loop and the defaults for each seed, EQUAL_PAIRS short runs of it and of
+the plain loop back to back, alternating, whose median ratio is the figure (the machine's drift
+over a table's hour stays out of it). Table 2 also runs with ``max_depth`` 64 set on the scene,
+the depth the daemon used to cap an unbounded one at.
 
 Per run: seconds per iteration (from the end of iteration 0 to the end of the last, so loading
 and the first kernels stay out), the time at which every target parameter is within 1% (2%)

@@ -4,7 +4,6 @@ far off) that it recovers, continued from a checkpoint along the same trajectory
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
