@@ -384,6 +384,26 @@ def cameras(res: int, count: int) -> str:
     return "".join(camera(res, origin) for origin in views(count))
 
 
+def chamfer(a: "np.ndarray", b: "np.ndarray", faces: "np.ndarray") -> float:
+    """Symmetric Chamfer distance of two surfaces of the same faces: the mean distance from
+    each point sampled on one (vertices, edge midpoints and centroids of its triangles) to the
+    nearest sampled on the other, both ways, halved."""
+    import numpy as np
+
+    def samples(v: np.ndarray) -> np.ndarray:
+        tri = v[faces]
+        return np.concatenate([v, tri.mean(axis=1), (tri + np.roll(tri, 1, axis=1)).reshape(
+            -1, 3) / 2])
+
+    def nearest(p: np.ndarray, q: np.ndarray) -> float:
+        """Mean over p of the distance to q's nearest point, in blocks (bounded memory)."""
+        return float(np.concatenate([np.linalg.norm(p[i:i + 1024, None] - q[None], axis=-1)
+                                     .min(axis=1) for i in range(0, len(p), 1024)]).mean())
+
+    p, q = samples(a), samples(b)
+    return (nearest(p, q) + nearest(q, p)) / 2
+
+
 def mesh_in_views(res: int, count: int) -> str:
     """A diffuse mesh (blob.ply, id ``blob``) seen by ``count`` cameras against a hidden
     environment, with a directional light for shading, rendered by direct_projective with

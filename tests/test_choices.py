@@ -41,7 +41,7 @@ def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert plain.choice_on("depth") and not plain.choice_on("log_space")
     # Choices a setting asks for are not switched by name: they follow that setting.
     asked = [c.name for c in REGISTRY if not c.switchable]
-    assert sorted(asked) == ["exposure_gains", "large_steps", "smoothness"]
+    assert sorted(asked) == ["exposure_gains", "smoothness"]
     assert all(c(_settings(all="off")).on for c in REGISTRY if not c.switchable)
 
 

@@ -50,6 +50,9 @@ CHOICES = {
                        "(0.0318) while Adam steps on below it",
     "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "
                 "upsampling, optionally :LEVELS, e.g. linear:3, sets how)",
+    "large_steps": "vertex positions of a mesh of more than 21 vertices stepped as u = (I + "
+                   "lambda L) v (Nicolet et al. 2021), lambda and a rate not given chosen from "
+                   "the mesh; JobSpec.large_steps_lambda sets lambda",
     "eta_differences": "a dielectric's eta differentiated by central differences of the "
                        "images while its surface is near-specular",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
@@ -137,6 +140,9 @@ class ParameterSetting:
     hi: float
     initial: Values | None = None  # None: the scene's value
     smoothness: float = 0.0        # weight of a texture's or grid's smoothness term
+    # False: learning_rate is the listing's default, which a choice may replace by its own
+    # (large_steps: a share of the mesh's size)
+    rate_given: bool = True
 
 
 @dataclass(frozen=True)
@@ -166,7 +172,8 @@ class JobSettings:
     # A value per name of CHOICES ("off" turns it off; ALL_CHOICES: every one, a name given
     # as well wins); a choice not named is on.
     choices: dict[str, str] = field(default_factory=dict)
-    # lambda of LargeSteps for selected vertex positions (engine/choices/large_steps); 0: off
+    # lambda of LargeSteps for selected vertex positions (engine/choices/large_steps); 0: chosen
+    # from each mesh (the choice, on by default, is turned off as any other: choices)
     large_steps: float = 0.0
     # A sample-count schedule: from iteration N on (key), renders take this spp (value).
     spp_from: dict[int, int] = field(default_factory=dict)

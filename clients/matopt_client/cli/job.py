@@ -185,8 +185,9 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
                    "'--spp 8 --spp-from 16:64' (repeatable; 'matopt job history' shows each "
                    "iteration's)")
 @click.option("--large-steps", "large_steps", type=float, metavar="LAMBDA",
-              help="step vertex positions as LargeSteps (Nicolet et al. 2021) with this "
-                   "lambda, e.g. 19 (more for finer meshes), Adam in its uniform mode")
+              help="lambda of the LargeSteps (Nicolet et al. 2021) that vertex positions take "
+                   "(more for finer meshes); default: the mesh's vertices / 256, and "
+                   "'--choice large_steps=off' steps each vertex by plain Adam")
 @click.option("--starts", type=int, metavar="N",
               help="compare N starts (1 to 8): short probes from the given start, the "
                    "ranges' middles and colours' extremes, then the rest of the iterations "

@@ -331,7 +331,8 @@ def _records(params: mi.SceneParameters, settings: api.JobSettings,
         out[p.key] = ParamRecord(
             p.key, kind_shape[0] if kind_shape else "vector", p.lo, p.hi, p.learning_rate,
             np.clip(initial[p.key] if p.key in initial else scene, p.lo, p.hi), scene,
-            initial_given=p.initial is not None, smoothness=p.smoothness,
+            initial_given=p.initial is not None, rate_given=p.rate_given,
+            smoothness=p.smoothness,
             channels=int(value.shape[-1]) if tensor else 0,
             shape=tuple(int(n) for n in value.shape) if tensor else (),
             truth=truth.get(p.key))

@@ -27,8 +27,9 @@ class ParamRecord:
 
     lo, hi      the range v is kept in, as the job gives it
     bounds      the range u is clipped to after a step (the choices' maps of lo, hi)
-    rate        the base rate as given; ``step_rate`` what this step uses before the
-                schedule's share (a choice may scale it: linear_extinction)
+    rate        the base rate as given (``rate_given``) or listed; ``step_rate`` what this
+                step uses before the schedule's share (a choice may scale it:
+                linear_extinction, large_steps)
     start       v_0, flat, in range (a choice may replace it: black_start)
     scene       the scene's own value (None for a gain)
     current     theta_i's v once the loop has read it
@@ -46,6 +47,7 @@ class ParamRecord:
     start: np.ndarray
     scene: np.ndarray | None = None
     initial_given: bool = False   # the job gave v_0 (``--init``, a restart)
+    rate_given: bool = True       # False: the listing's default rate
     smoothness: float = 0.0       # the job's smoothness weight (textures and grids)
     channels: int = 0             # a texture's or grid's channel count; 0 otherwise
     shape: tuple[int, ...] = ()   # the scene value's shape (a tensor's), () for a vector

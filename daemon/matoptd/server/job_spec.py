@@ -108,6 +108,9 @@ def _settings(spec: pb.JobSpec) -> dict:
         if not any(p.key.endswith(".vertex_positions") for p in spec.parameters):
             raise InvalidArgument("large_steps_lambda steps vertex positions, and the job "
                                   "selects none")
+        if spec.choices.get("large_steps") == "off":
+            raise InvalidArgument("large_steps_lambda asks for large steps, and the choice "
+                                  "large_steps=off turns them off: drop one of the two")
         given["large_steps"] = spec.large_steps_lambda
     if spec.spp_from:
         given["spp_from"] = _spp_from(spec.spp_from, given.get("iterations",
@@ -229,7 +232,8 @@ def _parameter(p: pb.ParameterSpec, spec: pb.JobSpec, scene: SceneRecord,
         note = range_notes.clip_note(p.key, value, lo, hi, source)
         if note:
             notes.append(note)
-    return ParameterSetting(p.key, lr, lo, hi, initial, p.smoothness)
+    return ParameterSetting(p.key, lr, lo, hi, initial, p.smoothness,
+                            p.HasField("learning_rate") or spec.HasField("learning_rate"))
 
 
 def _decoded(values: Values, blob: str, what: str, info: ParameterInfo, read):
