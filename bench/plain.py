@@ -31,6 +31,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+# A daemon job of seed s renders iteration i with seed s * DAEMON_SEED_STRIDE + i (one sensor;
+# daemon/matoptd/engine/renders.py): the loop given that seed draws the same samples.
+DAEMON_SEED_STRIDE = 1_000_003
+
+
 @dataclass
 class PlainSpec:
     xml: Path

@@ -397,8 +397,8 @@ def chamfer(a: "np.ndarray", b: "np.ndarray", faces: "np.ndarray") -> float:
 
     def nearest(p: np.ndarray, q: np.ndarray) -> float:
         """Mean over p of the distance to q's nearest point, in blocks (bounded memory)."""
-        return float(np.concatenate([np.linalg.norm(p[i:i + 1024, None] - q[None], axis=-1)
-                                     .min(axis=1) for i in range(0, len(p), 1024)]).mean())
+        return float(np.concatenate([np.linalg.norm(p[i:i + 256, None] - q[None], axis=-1)
+                                     .min(axis=1) for i in range(0, len(p), 256)]).mean())
 
     p, q = samples(a), samples(b)
     return (nearest(p, q) + nearest(q, p)) / 2
