@@ -25,7 +25,8 @@ INF = math.inf
 # hundreds of iterations drifting along the valley where base_color and spec_trans trade off
 # (Adam's noise-dominated step is about lr * signal / noise), and 0.1 with the cosine decay and
 # 16 spp reaches 2% in a third of the time. The others keep the thesis's 0.03: unbounded ones
-# (vertex positions) move in scene units, where 0.1 is a large step for a small object; each
+# (vertex positions) move in scene units, where 0.1 is a large step for a small object (a
+# mesh under large steps takes a share of its extent instead: choices/large_steps.py); each
 # texel, voxel or vertex of a large parameter is seen by few pixels, so its gradient is noisy
 # and a large rate lets the weakly seen ones wander (a grid's interior voxels); and a medium's
 # properties reach the image through scattering, whose gradients are the noisiest of all: on
