@@ -81,6 +81,7 @@ class Settings:
     # defaults (NAME=VALUE, e.g. gauss_newton=on)
     with_choices: dict[str, str] = field(default_factory=dict)
     first_seed: int = 0        # real_scenes: the seeds run are first_seed, first_seed + 1, ...
+    spps: tuple[int, ...] = ()  # defaults_matrix: the spp of its cells (empty: its corner)
 
 
 # ---------------------------------------------------------------------------------------------

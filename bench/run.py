@@ -42,7 +42,7 @@ from common import Result, Settings, Target  # noqa: E402
 CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
          "grids", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
-         "thesis_tables", "starts", "real_scenes", "calibration"]
+         "thesis_tables", "starts", "real_scenes", "defaults_matrix", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 HISTORY = DOCS.with_name("benchmarks-history.md")  # by hand: a full run never writes it
 # Cases no longer run, and why: the summary says so, so that a reader of an older report
@@ -201,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
                    "gauss_newton=on), beside the defaults")
     p.add_argument("--first-seed", type=int, default=0,
                    help="real_scenes: the first seed run (the others follow it)")
+    p.add_argument("--spp", type=int, nargs="+", default=(), metavar="SPP",
+                   help="defaults_matrix: the spp of its cells (default 8 16; the full "
+                   "matrix: 8 16 32)")
     args = p.parse_args(argv)
     if args.splice:
         return gpu_run.splice(args.splice, DOCS)
@@ -217,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
                         args.thesis_repo.resolve() if args.thesis_repo else None, args.variant,
                         film, args.iterations, args.seeds, tuple(args.tables),
                         args.defaults_only, args.cost_only, args.deadline,
-                        dict(c.split("=", 1) for c in args.with_choice), args.first_seed)
+                        dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
+                        tuple(args.spp))
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None

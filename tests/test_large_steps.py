@@ -58,7 +58,7 @@ def test_default_large_steps_bring_a_sphere_closer_to_a_box_than_plain_adam(stub
     large, done = _run(stubs, box_target)
     choice = next(c for c in done.choices if c.name == "large_steps")
     assert choice.on and "lambda blob.vertex_positions 2.51 (vertices / 256)" in choice.why
-    assert any("a tenth of the mesh's extent (2.42 scene units)" in n for n in done.notes)
+    assert any("0.1 of the mesh's extent (2.42 scene units)" in n for n in done.notes)
     plain = {rate: _run(stubs, box_target, rate, choices={"large_steps": "off"})
              for rate in (0.01, 0.03)}
     off = next(c for c in plain[0.01][1].choices if c.name == "large_steps")

@@ -69,7 +69,8 @@ class LargeSteps(Choice):
             # unique vertices by the scene's positions: seams and split normals stay closed
             self.steps[key] = mi.ad.LargeSteps(mi.Float(r.scene), faces, self.lambdas[key])
         lambdas = ", ".join(f"{k} {v:.3g}" for k, v in sorted(self.lambdas.items()))
-        self.why = (f"lambda {lambdas} ({'asked for' if asked else 'vertices / 256'}): "
+        chosen = "asked for" if asked else f"vertices / {LAMBDA_VERTICES}"
+        self.why = (f"lambda {lambdas} ({chosen}): "
                     "stepped as u = (I + lambda L) v, so a step moves the surface smoothly; "
                     "Adam in its uniform mode (Dr.Jit's is per optimizer: every parameter of "
                     "the job)")
@@ -93,7 +94,7 @@ class LargeSteps(Choice):
 
     def notes(self) -> list[str]:
         return [f"{k}: large steps with lambda {self.lambdas[k]:.3g}; its rate "
-                + (f"{self.rates[k]:.3g}, a tenth of the mesh's extent ({self.extents[k]:.3g} "
-                   "scene units), since none was given" if self.rates[k] else
+                + (f"{self.rates[k]:.3g}, {EXTENT_RATE:g} of the mesh's extent "
+                   f"({self.extents[k]:.3g} scene units), since none was given" if self.rates[k] else
                    "as given, in scene units of u")
                 for k in sorted(self.keys)]

@@ -1,0 +1,146 @@
+"""The daemon's defaults judged on a matrix of configurations, not on one.
+
+A default tuned where it was measured can cost elsewhere: on Table 4 at max_depth 64 the hold of
+eta paid, at depth 8 it cost a factor of three. Each cell here is one of the thesis's tables on
+its own scene (bench/real_scenes.py: its starts, truth, gated parameters and plain loop) at a
+max_depth (DEPTHS, set on the scene) and an spp (SPPS), 128x96 on the CPU. In a cell both
+sides render that spp and depth: the reference is rendered at the truth with the scene's
+integrator at that depth, the daemon's job loads the scene with it (its ``depth`` choice may
+still cut an unbounded one, as everywhere) and the plain loop loads the same scene file. Per
+seed: the plain loop for the iterations, the daemon's defaults, and the plain loop again for
+as long as the daemon's job took (equal time, which counts the daemon's extra renders against
+it). Both draw the same samples per iteration (plain.DAEMON_SEED_STRIDE).
+
+Per cell, the median over seeds of the worst final relative error of the table's gated
+parameters and of the time to 2% and 1% staying (every gated parameter within it to the end).
+Target per cell: the defaults' worst final error at most the plain loop's at equal time, and
+their time to 2% staying at most half the plain loop's where that gets there.
+
+The whole matrix (2 tables x 2 depths x 3 spp x 3 seeds) is hours on 2 cores; the case runs
+the corner spp {8, 16} x 2 seeds unless ``--seeds`` and ``--spp`` say otherwise; ``--quick``:
+one cell per table at 64x48, 20 iterations, one seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import common
+import real_scenes as rs
+from common import Result, Settings, Target
+
+DAEMON = rs.DAEMON      # its references: 1024 spp in one call
+DEPTHS = (8, 64)         # the thesis's own: Table 2 8, Table 4 64
+SPPS = (8, 16, 32)
+CORNER_SPPS, CORNER_SEEDS = (8, 16), 2
+
+
+@dataclasses.dataclass
+class Cell:
+    table: str
+    depth: int
+    spp: int
+    runs: list[rs.Run]
+
+    def of(self, method: str) -> list[rs.Run]:
+        return [r for r in self.runs if r.method == method]
+
+
+def cells(settings: Settings) -> list[tuple[rs.Table, int, int]]:
+    """(table, depth, spp) of every cell run, in order."""
+    tables = [t for t in rs.TABLES if not settings.tables or t.name in settings.tables]
+    if settings.quick:
+        return [(t, DEPTHS[-1], t.plain_spp) for t in tables]
+    spps = settings.spps or CORNER_SPPS
+    return [(t, d, s) for t in tables for d in DEPTHS for s in spps]
+
+
+def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: int, spp: int,
+            p: rs.Plan, references: dict) -> Cell:
+    """The cell's runs; ``references``: (table, depth) -> reference, rendered once for all spp."""
+    table = dataclasses.replace(table, plain_spp=spp)
+    prep = rs.prepare(server.client, table, p, settings, {"max_depth": str(depth)},
+                      references.get((table.name, depth)))
+    references[table.name, depth] = (prep.ref_blob, prep.ref_path)
+    rs.run_plain(prep, p, 99, server.variant, rs.WARM_UP)  # kernels compiled on both sides
+    rs.run_daemon(server, prep, "warm-up", rs.daemon_spec(prep, 99, rs.WARM_UP))
+    runs: list[rs.Run] = []
+    for seed in range(settings.first_seed, settings.first_seed + p.seeds):
+        sides = [lambda: rs.run_plain(prep, p, seed, server.variant, p.iterations),
+                 lambda: rs.run_daemon(server, prep, "daemon",
+                                       rs.daemon_spec(prep, seed, p.iterations))]
+        for side in sides[seed % 2:] + sides[:seed % 2]:
+            runs.append(side())
+        job = runs[-1] if runs[-1].method == "daemon" else runs[-2]
+        runs.append(rs.run_plain(prep, p, seed, server.variant, p.iterations,
+                                 seconds=job.seconds[-1]))
+        print(f"bench: defaults_matrix {table.name} depth {depth} spp {spp} seed {seed}: "
+              + ", ".join(f"{r.method} {_worst(table, r):.4f}" for r in runs[-3:]), flush=True)
+    return Cell(table.name, depth, spp, runs)
+
+
+def _worst(table: rs.Table, run: rs.Run) -> float:
+    return max(run.final[k] for k in table.targets)
+
+
+def _median_time(table: rs.Table, runs: list[rs.Run], threshold: float) -> float:
+    return common.median([math.inf if (t := r.staying(table.targets, threshold)) is None
+                          else t for r in runs])
+
+
+def judge(table: rs.Table, cell: Cell) -> tuple[str, bool]:
+    """The cell's row (markdown) and whether its targets are met."""
+    daemon, equal, plain = cell.of("daemon"), cell.of(rs.EQUAL_TIME), cell.of("plain")
+    worst = {m: common.median([_worst(table, r) for r in rs_])
+             for m, rs_ in (("daemon", daemon), ("equal", equal), ("plain", plain))}
+    two = {m: _median_time(table, rs_, 0.02) for m, rs_ in (("daemon", daemon),
+                                                            ("equal", equal))}
+    one = {m: _median_time(table, rs_, 0.01) for m, rs_ in (("daemon", daemon),
+                                                            ("equal", equal))}
+    met = worst["daemon"] <= worst["equal"] and (
+        math.isinf(two["equal"]) or two["daemon"] <= 0.5 * two["equal"])
+    row = (f"| {table.name} | {cell.depth} | {cell.spp} | {len(daemon)} | "
+           f"{worst['daemon']:.4f} | {worst['equal']:.4f} | {worst['plain']:.4f} | "
+           f"{rs._t(two['daemon'])} / {rs._t(two['equal'])} | "
+           f"{rs._t(one['daemon'])} / {rs._t(one['equal'])} | {'met' if met else 'MISSED'} |")
+    return row, met
+
+
+def run(settings: Settings, server: common.Daemon) -> Result:
+    result = Result("defaults_matrix", "The defaults on a matrix of depths and spp")
+    if settings.thesis_repo is None:
+        result.targets.append(Target("case ran", "skipped: give --thesis-repo DIR (a checkout "
+                                     "of github.com/sapo17/BachelorThesis)", None))
+        return result
+    began = time.perf_counter()
+    p = rs.plan(dataclasses.replace(settings, seeds=settings.seeds or (
+        1 if settings.quick else CORNER_SEEDS)), server.variant)
+    p = dataclasses.replace(p, on_off=False)
+    todo = cells(settings)
+    rows, csv = [], []
+    met_cells, references = 0, {}
+    for table, depth, spp in todo:
+        cell = measure(server, settings, table, depth, spp, p, references)
+        row, met = judge(table, cell)
+        rows.append(row)
+        met_cells += met
+        csv += [{"table": table.name, "depth": depth, "spp": spp, "method": r.method,
+                 "seed": r.seed, "seconds_per_iteration": r.per_iteration,
+                 "worst_final": _worst(table, r), "to_2pct": r.staying(table.targets, 0.02),
+                 "to_1pct": r.staying(table.targets, 0.01)} for r in cell.runs]
+    result.targets.append(Target(
+        "cells where the defaults' worst final error <= the plain loop's at equal time and "
+        "their time to 2% staying <= half the plain loop's (where it gets there)",
+        f"{met_cells} of {len(todo)}", met_cells == len(todo)))
+    result.lines += [
+        f"{server.variant}, film {p.film[0]}x{p.film[1]}, {p.iterations} iterations, "
+        f"{p.seeds} seed(s) per cell; {time.perf_counter() - began:.0f} s. Worst: the median "
+        "over seeds of the worst final relative error of the table's gated parameters; "
+        "times: median seconds to 2% (1%) staying, daemon / plain at equal time.", "",
+        "| table | max_depth | spp | seeds | worst, daemon | worst, plain at equal time | "
+        "worst, plain at equal iterations | to 2% (s) | to 1% (s) | target |",
+        "|" + "---|" * 10, *rows]
+    result.files.append(common.write_csv(settings.out / "defaults_matrix.csv", csv))
+    return result
