@@ -111,8 +111,7 @@ def judge(table: rs.Table, cell: Cell) -> tuple[str, bool]:
 def run(settings: Settings, server: common.Daemon) -> Result:
     result = Result("defaults_matrix", "The defaults on a matrix of depths and spp")
     if settings.thesis_repo is None:
-        result.targets.append(Target("case ran", "skipped: give --thesis-repo DIR (a checkout "
-                                     "of github.com/sapo17/BachelorThesis)", None))
+        result.targets.append(rs.NO_REPO)
         return result
     began = time.perf_counter()
     p = rs.plan(dataclasses.replace(settings, seeds=settings.seeds or (

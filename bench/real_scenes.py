@@ -69,6 +69,8 @@ WARM_UP = 3  # iterations of each side before the runs (kernels compiled, not co
 # Equal work: the plain loop and the plain preset in short runs back to back, alternating,
 # so that the machine's drift over a table's hour stays out of their ratio.
 EQUAL_PAIRS, EQUAL_ITERATIONS = 6, 40
+NO_REPO = Target("case ran", "skipped: give --thesis-repo DIR (a checkout of "
+                 "github.com/sapo17/BachelorThesis)", None)
 # The plain preset and the plain loop render the same samples (plain.DAEMON_SEED_STRIDE): their
 # errors agree within AGREE for at least AGREE_ITERATIONS (at 128x96, 3 seeds: Table 2 15-31,
 # Table 4 23-25; float sums in another order then part them, as two runs of one loop would).
@@ -484,8 +486,7 @@ def _agree(a: Run, b: Run) -> int:
 def run(settings: Settings, server: common.Daemon) -> Result:
     result = Result("real_scenes", "The thesis's Tables 2 and 4 on its own scenes")
     if settings.thesis_repo is None:
-        result.targets.append(Target("case ran", "skipped: give --thesis-repo DIR (a checkout "
-                                     "of github.com/sapo17/BachelorThesis)", None))
+        result.targets.append(NO_REPO)
         return result
     p = plan(settings, server.variant)
     result.lines.append(
