@@ -29,8 +29,8 @@ import plain
 from common import Result, Settings, Target
 from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
-from scenes import (QUAD_CORNERS, QUAD_IN_FRONT, chamfer, icosphere, mesh_in_views, mesh_ply,
-                    quad_obj)
+from scenes import (QUAD_CORNERS, QUAD_IN_FRONT, box_like, chamfer, icosphere, mesh_in_views,
+                    mesh_ply, quad_obj)
 
 KEY = "quad.vertex_positions"
 COLOUR = "quad.bsdf.reflectance.value"
@@ -103,10 +103,6 @@ def blob_scene(client: mc.Client, work: Path, name: str, level: int = 3
     refs = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64,
                                                            seed=12345)).images
     return folder, xml, scene, list(refs)
-
-
-def box_like(sphere: np.ndarray) -> np.ndarray:
-    return 0.7 * sphere / np.abs(sphere).max(axis=1, keepdims=True)
 
 
 def large_steps(settings: Settings, server: common.Daemon, work: Path

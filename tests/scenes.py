@@ -384,6 +384,13 @@ def cameras(res: int, count: int) -> str:
     return "".join(camera(res, origin) for origin in views(count))
 
 
+def box_like(sphere: "np.ndarray") -> "np.ndarray":
+    """A unit sphere's vertices pushed toward a cube of half-size 0.7: the shape tests and
+    benchmarks pull a sphere of radius 0.7 toward."""
+    import numpy as np
+    return 0.7 * sphere / np.abs(sphere).max(axis=1, keepdims=True)
+
+
 def chamfer(a: "np.ndarray", b: "np.ndarray", faces: "np.ndarray") -> float:
     """Symmetric Chamfer distance of two surfaces of the same faces: the mean distance from
     each point sampled on one (vertices, edge midpoints and centroids of its triangles) to the

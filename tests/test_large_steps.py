@@ -14,7 +14,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import wait_state
-from scenes import chamfer, create_scene, icosphere, mesh_in_views, mesh_ply
+from scenes import box_like, chamfer, create_scene, icosphere, mesh_in_views, mesh_ply
 
 KEY = "blob.vertex_positions"
 RES, ITERATIONS = 24, 60
@@ -25,7 +25,7 @@ SPHERE, FACES = icosphere(3)  # 642 vertices
 def box_target(stubs):
     """The scene holds the target, a sphere pushed toward a cube (same mesh); jobs start
     from the sphere."""
-    target = 0.7 * SPHERE / np.abs(SPHERE).max(axis=1, keepdims=True)
+    target = box_like(SPHERE)
     scene = create_scene(stubs, {"s.xml": mesh_in_views(RES, 3).encode(),
                                  "blob.ply": mesh_ply(target, FACES)}, "s.xml")
     refs = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64)).images

@@ -93,8 +93,10 @@ class LargeSteps(Choice):
         return self.rates[record.key] or rate
 
     def notes(self) -> list[str]:
-        return [f"{k}: large steps with lambda {self.lambdas[k]:.3g}; its rate "
-                + (f"{self.rates[k]:.3g}, {EXTENT_RATE:g} of the mesh's extent "
-                   f"({self.extents[k]:.3g} scene units), since none was given" if self.rates[k] else
-                   "as given, in scene units of u")
+        def rate(k: str) -> str:
+            if self.rates[k] is None:
+                return "as given, in scene units of u"
+            return (f"{self.rates[k]:.3g}, {EXTENT_RATE:g} of the mesh's extent "
+                    f"({self.extents[k]:.3g} scene units), since none was given")
+        return [f"{k}: large steps with lambda {self.lambdas[k]:.3g}; its rate {rate(k)}"
                 for k in sorted(self.keys)]
