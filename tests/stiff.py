@@ -152,8 +152,9 @@ CASES = [
              "reports"),
     Case("eta 2.5", glass(2.5, res=32), {"ball.bsdf.eta": [1.5]}, {"ball.bsdf.eta": [2.5]}, 100,
          # The image hardly changes between 2.3 and 2.7, so eta's difference gradient is mostly
-         # noise there: over five seeds the last iteration ended at 2.34-2.55. 8%, from 40% off.
-         tolerance={"ball.bsdf.eta": 0.08},
+         # noise there: over 56 seeds the last iteration ended at 2.24-2.67 (median 2.47, one
+         # beyond 8%; a CPU's threads add sums in any order, so even one seed varies). 12%.
+         tolerance={"ball.bsdf.eta": 0.12},
          rates={"ball.bsdf.eta": 0.05},  # a whole unit away: a larger step than the default
          reference_spp=1024,
          why="a strongly refracting ball, far from the start; the image changes little between "
