@@ -77,11 +77,13 @@ class Settings:
     defaults_only: bool = False  # real_scenes: the plain loop and the defaults, nothing else
     cost_only: bool = False    # calibration: the standard errors' cost alone
     deadline: float = 0.0      # real_scenes: epoch seconds by which to end (0: none)
-    # real_scenes: a daemon job per seed with these choices turned on or off beside the
-    # defaults (NAME=VALUE, e.g. gauss_newton=on)
+    # real_scenes, defaults_matrix: a daemon job per seed with these choices turned on or off
+    # beside the defaults (NAME=VALUE, e.g. gauss_newton=on)
     with_choices: dict[str, str] = field(default_factory=dict)
-    first_seed: int = 0        # real_scenes: the seeds run are first_seed, first_seed + 1, ...
+    # real_scenes, defaults_matrix: the seeds run are first_seed, first_seed + 1, ...
+    first_seed: int = 0
     spps: tuple[int, ...] = ()  # defaults_matrix: the spp of its cells (empty: its corner)
+    depths: tuple[int, ...] = ()  # defaults_matrix: the max_depth of its cells (empty: all)
 
 
 # ---------------------------------------------------------------------------------------------

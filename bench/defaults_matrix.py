@@ -17,8 +17,10 @@ Target per cell: the defaults' worst final error at most the plain loop's at equ
 their time to 2% staying at most half the plain loop's where that gets there.
 
 The whole matrix (2 tables x 2 depths x 3 spp x 3 seeds) is hours on 2 cores; the case runs
-the corner spp {8, 16} x 2 seeds unless ``--seeds`` and ``--spp`` say otherwise; ``--quick``:
-one cell per table at 64x48, 20 iterations, one seed.
+the corner spp {8, 16} x 2 seeds unless ``--seeds``, ``--spp`` and ``--depth`` say otherwise;
+``--quick``: one cell per table at 64x48, 20 iterations, one seed. ``--with-choice NAME=VALUE``
+adds a candidate default per seed (the defaults with that choice set) beside them: a choice is
+judged by the cells, not by the configuration it was tuned on.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ DAEMON = rs.DAEMON      # its references: 1024 spp in one call
 DEPTHS = (8, 64)         # the thesis's own: Table 2 8, Table 4 64
 SPPS = (8, 16, 32)
 CORNER_SPPS, CORNER_SEEDS = (8, 16), 2
+CANDIDATE = "candidate"  # the daemon with ``--with-choice`` set: a default on trial
 
 
 @dataclasses.dataclass
@@ -54,7 +57,7 @@ def cells(settings: Settings) -> list[tuple[rs.Table, int, int]]:
     if settings.quick:
         return [(t, DEPTHS[-1], t.plain_spp) for t in tables]
     spps = settings.spps or CORNER_SPPS
-    return [(t, d, s) for t in tables for d in DEPTHS for s in spps]
+    return [(t, d, s) for t in tables for d in settings.depths or DEPTHS for s in spps]
 
 
 def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: int, spp: int,
@@ -76,8 +79,12 @@ def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: i
         job = runs[-1] if runs[-1].method == "daemon" else runs[-2]
         runs.append(rs.run_plain(prep, p, seed, server.variant, p.iterations,
                                  seconds=job.seconds[-1]))
+        if settings.with_choices:  # a candidate default beside the defaults
+            runs.append(rs.run_daemon(server, prep, CANDIDATE, rs.daemon_spec(
+                prep, seed, p.iterations, settings.with_choices)))
         print(f"bench: defaults_matrix {table.name} depth {depth} spp {spp} seed {seed}: "
-              + ", ".join(f"{r.method} {_worst(table, r):.4f}" for r in runs[-3:]), flush=True)
+              + ", ".join(f"{r.method} {_worst(table, r):.4f}" for r in runs
+                          if r.seed == seed), flush=True)
     return Cell(table.name, depth, spp, runs)
 
 
@@ -105,6 +112,11 @@ def judge(table: rs.Table, cell: Cell) -> tuple[str, bool]:
            f"{worst['daemon']:.4f} | {worst['equal']:.4f} | {worst['plain']:.4f} | "
            f"{rs._t(two['daemon'])} / {rs._t(two['equal'])} | "
            f"{rs._t(one['daemon'])} / {rs._t(one['equal'])} | {'met' if met else 'MISSED'} |")
+    if candidate := cell.of(CANDIDATE):
+        worst_c = common.median([_worst(table, r) for r in candidate])
+        row += (f" {worst_c:.4f} | {rs._t(_median_time(table, candidate, 0.02))} | "
+                f"{common.median([r.seconds[-1] for r in candidate]):.0f} / "
+                f"{common.median([r.seconds[-1] for r in daemon]):.0f} |")
     return row, met
 
 
@@ -139,7 +151,12 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         "over seeds of the worst final relative error of the table's gated parameters; "
         "times: median seconds to 2% (1%) staying, daemon / plain at equal time.", "",
         "| table | max_depth | spp | seeds | worst, daemon | worst, plain at equal time | "
-        "worst, plain at equal iterations | to 2% (s) | to 1% (s) | target |",
-        "|" + "---|" * 10, *rows]
+        "worst, plain at equal iterations | to 2% (s) | to 1% (s) | target |"
+        + (" worst, candidate | candidate to 2% (s) | seconds, candidate / daemon |"
+           if settings.with_choices else ""),
+        "|" + "---|" * (13 if settings.with_choices else 10), *rows]
+    if settings.with_choices:
+        result.lines.insert(1, "Candidate: the defaults with " + ", ".join(
+            f"`{k}={v}`" for k, v in settings.with_choices.items()) + ".")
     result.files.append(common.write_csv(settings.out / "defaults_matrix.csv", csv))
     return result

@@ -197,13 +197,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="copy a --gpu run's output DIR to bench/results/gpu/ and its section "
                    "into docs/benchmarks.md")
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
-                   help="real_scenes: also a daemon job per seed with this choice set (e.g. "
-                   "gauss_newton=on), beside the defaults")
+                   help="real_scenes, defaults_matrix: also a daemon job per seed with this "
+                   "choice set (e.g. gauss_newton=on), beside the defaults")
     p.add_argument("--first-seed", type=int, default=0,
-                   help="real_scenes: the first seed run (the others follow it)")
+                   help="real_scenes, defaults_matrix: the first seed run (the others follow it)")
     p.add_argument("--spp", type=int, nargs="+", default=(), metavar="SPP",
                    help="defaults_matrix: the spp of its cells (default 8 16; the full "
                    "matrix: 8 16 32)")
+    p.add_argument("--depth", type=int, nargs="+", default=(), metavar="DEPTH",
+                   help="defaults_matrix: the max_depth of its cells (default 8 64)")
     args = p.parse_args(argv)
     if args.splice:
         return gpu_run.splice(args.splice, DOCS)
@@ -221,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
                         film, args.iterations, args.seeds, tuple(args.tables),
                         args.defaults_only, args.cost_only, args.deadline,
                         dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
-                        tuple(args.spp))
+                        tuple(args.spp), tuple(args.depth))
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None

@@ -66,6 +66,12 @@ BUDGET = 0.1          # of the job's optimizing time, for all of J (its spp foll
 FLOOR, FLOOR_SHARE = 32, 0.25
 
 
+# ... and at least this many seconds, whatever the job's: a job of small frozen iterations
+# on a fast machine takes well under a second (the textured calibration case: 0.4 s), whose
+# quarter left 15 of 40 roughnesses "too noisy" (1 with this floor; 1 of 60 on a slower CPU).
+FLOOR_SECONDS = 1.0
+
+
 # ... and at most this many seconds: the end of a job runs under the daemon's watchdog (5x its
 # base of 120 s), which an hours-long job's 10% would pass.
 BUDGET_CAP = 60.0
@@ -277,7 +283,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
     if not fixed:
         _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
     one = time.perf_counter() - began_one
-    budget = min(max(BUDGET * job.seconds,
+    budget = min(max(BUDGET * job.seconds, FLOOR_SECONDS,
                      min(FLOOR * full * len(sensors), FLOOR_SHARE * job.seconds)), BUDGET_CAP)
     split = split_samples.shares_primal(integrator)
 
