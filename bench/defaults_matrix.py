@@ -139,7 +139,9 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         met_cells += met
         csv += [{"table": table.name, "depth": depth, "spp": spp, "method": r.method,
                  "seed": r.seed, "seconds_per_iteration": r.per_iteration,
-                 "worst_final": _worst(table, r), "to_2pct": r.staying(table.targets, 0.02),
+                 "worst_final": _worst(table, r),
+                 "worst_key": max(table.targets, key=lambda k: r.final[k]),
+                 "to_2pct": r.staying(table.targets, 0.02),
                  "to_1pct": r.staying(table.targets, 0.01)} for r in cell.runs]
     result.targets.append(Target(
         "cells where the defaults' worst final error <= the plain loop's at equal time and "
