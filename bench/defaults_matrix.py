@@ -88,8 +88,12 @@ def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: i
     return Cell(table.name, depth, spp, runs)
 
 
+def _worst_key(table: rs.Table, run: rs.Run) -> str:
+    return max(table.targets, key=lambda k: run.final[k])
+
+
 def _worst(table: rs.Table, run: rs.Run) -> float:
-    return max(run.final[k] for k in table.targets)
+    return run.final[_worst_key(table, run)]
 
 
 def _median_time(table: rs.Table, runs: list[rs.Run], threshold: float) -> float:
@@ -140,7 +144,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         csv += [{"table": table.name, "depth": depth, "spp": spp, "method": r.method,
                  "seed": r.seed, "seconds_per_iteration": r.per_iteration,
                  "worst_final": _worst(table, r),
-                 "worst_key": max(table.targets, key=lambda k: r.final[k]),
+                 "worst_key": _worst_key(table, r),
                  "to_2pct": r.staying(table.targets, 0.02),
                  "to_1pct": r.staying(table.targets, 0.01)} for r in cell.runs]
     result.targets.append(Target(
