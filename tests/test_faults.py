@@ -136,8 +136,10 @@ def test_a_job_over_the_memory_limit_fails_that_job_only(two_users):
     small = cornell_job(bob, 60)
     wait_iteration(bob, small.name, 5)
     # A 2048x2048 texture with its gradient and Adam's two moments: far more than 450 MiB.
+    # Its reference comes from a small texture: rendering the huge one alone nears the limit.
+    ref = alice.scenes.RenderScene(pb.RenderSceneRequest(
+        name=texture_scene(alice, 64, seed=0).name, spp=1)).images[0]
     scene = texture_scene(alice, 2048, seed=0)
-    ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=1)).images[0]
     huge = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
         scene=scene.name, iterations=5, spp=1, references=[pb.Reference(blob=ref.exr_blob)],
         parameters=[pb.ParameterSpec(key="quad.bsdf.reflectance.data")])))
