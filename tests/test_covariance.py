@@ -154,8 +154,8 @@ def test_a_rendered_reference_takes_its_noise_from_every_pixel_a_misfit_from_its
     for _ in range(200):
         a, b, r = (rng.normal(size=rows) * np.sqrt(s) for s in (noise, noise, noise / 8))
         residual = (a - r) * (b - r)
-        seen = (a - b) ** 2 / 2
-        pooled.append(residual_noise(j, j, seen, residual, np.ones(rows))[0, 0])
+        pooled.append(residual_noise(j, j, (a - b) / np.sqrt(2), a - r, b - r, np.ones(rows),
+                                     1)[0, 0])
         pixel.append(crossed(j, j, residual)[0][0, 0])
     assert np.mean(pooled) == pytest.approx(truth, rel=0.15)
     assert np.std(pooled) < 0.3 * np.std(pixel)
@@ -163,9 +163,40 @@ def test_a_rendered_reference_takes_its_noise_from_every_pixel_a_misfit_from_its
     misfit[:20] = 3.0
     a, b = (rng.normal(size=rows) * np.sqrt(noise) for _ in range(2))
     residual = (a - misfit) * (b - misfit)
-    kept = residual_noise(j, j, (a - b) ** 2 / 2, residual, np.ones(rows))[0, 0]
+    kept = residual_noise(j, j, (a - b) / np.sqrt(2), a - misfit, b - misfit, np.ones(rows),
+                          1)[0, 0]
     assert kept == pytest.approx(crossed(j, j, residual)[0][0, 0])
     assert kept > 20 * 9.0 * 0.5
+
+
+def test_noise_shared_by_a_pixels_channels_counts_for_a_scalar_that_moves_all_three():
+    """One path carries a sample's three channels, so a white highlight's noise moves them
+    together. A scalar (a roughness) moves all three: the variance of its J-weighted sum of a
+    reference is the channels' covariance summed, up to 3x their variances' sum, and the
+    reference's term must say so; a colour's channel (its J in one channel) is unchanged."""
+    rng = np.random.default_rng(7)
+    pixels, channels = 300, 3
+    j = np.zeros((pixels * channels, 2))
+    j[:, 0] = rng.uniform(0.5, 1.0, pixels).repeat(channels)  # a scalar: every channel
+    j[0::channels, 1] = rng.uniform(0.5, 1.0, pixels)          # a colour's red channel
+    sigma = rng.uniform(0.5, 1.5, pixels)
+
+    def draw(scale=1.0):  # the same noise in a pixel's three channels
+        return (rng.normal(size=pixels) * sigma * scale).repeat(channels)
+
+    shifts = []
+    estimates = []
+    for _ in range(300):
+        a, b, r = draw(), draw(), draw(np.sqrt(1 / 8))
+        shifts.append(j.T @ r)  # what the reference moves the fit by, before H^-1
+        estimates.append(residual_noise(j, j, (a - b) / np.sqrt(2), a - r, b - r,
+                                        np.ones(len(a)), channels))
+    truth = np.cov(np.array(shifts).T)
+    mean = np.mean(estimates, axis=0)
+    assert mean[0, 0] == pytest.approx(truth[0, 0], rel=0.2)
+    assert mean[1, 1] == pytest.approx(truth[1, 1], rel=0.2)
+    per_row = np.sum(j[:, 0] ** 2 * (sigma ** 2 / 8).repeat(channels))
+    assert truth[0, 0] > 2.5 * per_row  # what the channels taken apart would have said
 
 
 def test_strongly_correlated_pairs_are_named_strongest_first():

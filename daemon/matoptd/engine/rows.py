@@ -20,16 +20,19 @@ if TYPE_CHECKING:
 @dataclass
 class Rows:
     """One sensor's pixel-channels, flattened: two estimates of J (rows x p), the same
-    weighted by the loss (K J), the render noise and the residual per row."""
+    weighted by the loss (K J), and the factors of the render noise and the residual per row
+    (covariance.per_pixel)."""
 
     ja: np.ndarray
     jb: np.ndarray
     ka: np.ndarray
     kb: np.ndarray
     weight: np.ndarray    # the loss's own weight of each row (multiscale: its full level's)
-    noise: np.ndarray
-    residual: np.ndarray
+    difference: np.ndarray  # (A - B) / sqrt 2: its square is the render noise of the row
+    ra: np.ndarray        # A - R and B - R: their product is the residual
+    rb: np.ndarray
     misfit: np.ndarray    # the mean of the two renders less the reference
+    channels: int         # consecutive rows of one pixel, whose noise correlates
 
 
 def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
@@ -54,8 +57,6 @@ def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
     loss = LOSSES[job.loss]
     if loss.images is not None:  # the images as the loss compares them
         ja, jb, a, b, ref = loss.images(ja, jb, a, b, ref, weight)
-    noise = (a - b) ** 2 / 2
-    residual = (a - ref) * (b - ref)
     # The loss's weight of each row, as losses._mean: sum(w x) / max(sum(w), 1), mean over
     # sensors; a loss may weigh them its own way (multiscale_mse: K = sum_l D_l^T C_l D_l).
     c = weight / max(float(weight.sum()), 1.0) / count
@@ -65,8 +66,9 @@ def rows(index: int, sensor: Sensor, renders: list[np.ndarray],
         ka, kb = ja * c[..., None], jb * c[..., None]
     p = ja.shape[-1]
     flat = (lambda x: x.reshape(-1, p))
-    return Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(), noise.ravel(),
-                residual.ravel(), ((a + b) / 2 - ref).ravel())
+    return Rows(flat(ja), flat(jb), flat(ka), flat(kb), c.ravel(),
+                ((a - b) / np.sqrt(2)).ravel(), (a - ref).ravel(), (b - ref).ravel(),
+                ((a + b) / 2 - ref).ravel(), a.shape[-1] if a.ndim == 3 else 1)
 
 
 def linearized(rows: list[Rows], loss: str) -> covariance.Linearized:
@@ -81,6 +83,7 @@ def linearized(rows: list[Rows], loss: str) -> covariance.Linearized:
         gradient_noise += ((r.ka - r.kb) ** 2).T @ r.misfit ** 2
         h += 2 * covariance.crossed(r.ja, r.kb, np.ones(len(r.ja)))[0]
         spread = np.sqrt(spread ** 2 + (2 * covariance.crossed(r.ja, r.jb, r.weight)[1]) ** 2)
-        q += k * covariance.crossed(r.ka, r.kb, r.noise)[0]
-        qr += 4 * covariance.residual_noise(r.ka, r.kb, r.noise, r.residual, r.weight)
+        q += k * covariance.per_pixel(r.ka, r.kb, r.difference, r.difference, r.channels)[0]
+        qr += 4 * covariance.residual_noise(r.ka, r.kb, r.difference, r.ra, r.rb, r.weight,
+                                            r.channels)
     return covariance.Linearized(h, q, qr, spread, gradient, gradient_noise)
