@@ -1,6 +1,7 @@
 """A sensor's pixel-channels as the covariance model reads them: both estimates of J, the same
-weighed by the loss (K J), the render noise and the residual per row, and their products
-summed over the sensors into H, Q and Q_R (covariance.Linearized). The loss says how its rows
+weighed by the loss (K J), the factors of the render noise and the residual per row (a
+pixel's channels together: covariance.per_pixel), and their products summed over the sensors
+into H, Q and Q_R (covariance.Linearized). The loss says how its rows
 are weighed and what noise a step sees (losses.Loss)."""
 
 from __future__ import annotations
