@@ -264,3 +264,26 @@ def test_the_next_job_against_the_same_reference_reads_it_once(make, monkeypatch
     other.references[0] = api.ReferenceInput(0, other.references[0].sha256, "again.exr")
     _run(engine, "c", other)
     assert read == ["again.exr"]
+
+
+def test_a_job_whose_last_iteration_was_its_best_renders_that_result_once(make):
+    """Results render at 64 spp or more, several times an iteration's cost: a job whose best
+    iteration is its last (one iteration here) renders it once for both results, the same
+    image, beside its initial render."""
+    engine, settings = make
+    engine.start("once", settings(), None)
+    engine.step("once", 1)
+    renders = engine.runs["once"].opt.renders
+    made = []
+    render = renders.render
+    renders.render = lambda *a, **kw: made.append(a[0]) or render(*a, **kw)
+    try:
+        images = engine.result_images("once", 0)
+    finally:
+        renders.render = render
+        engine.release("once")
+    assert len(made) == 2  # initial, and iteration 0 for best and last alike
+    best = {i.role: i for i in images["best"]}
+    last = {i.role: i for i in images["last"]}
+    assert best["optimized"].exr == last["optimized"].exr
+    assert best["initial"].exr == last["initial"].exr

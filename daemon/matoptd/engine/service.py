@@ -443,12 +443,15 @@ def _sensor_images(run: Run, chosen: list[tuple[str, Best]], sensor: int
     spp = api.result_spp(opt.spp, reference.shape[0] * reference.shape[1], run.max_samples)
     first = image(opt.renders.render(opt.initial, sensor, spp), sensor, "initial")
     ref_image = image(reference, sensor, "reference")
-    out = {}
+    out: dict[str, list[api.Image]] = {}
+    made: dict[int, list[api.Image]] = {}  # a job whose last iteration was its best: one render
     for which, it in chosen:
-        optimized = opt.renders.render(it.values, sensor, spp, it.gains)  # as the loss saw it
-        error = np.abs(optimized - reference) * ref.mask()
-        out[which] = [first, image(optimized, sensor, "optimized"), ref_image,
-                      image(error, sensor, "error")]
+        if it.iteration not in made:
+            optimized = opt.renders.render(it.values, sensor, spp, it.gains)  # as the loss saw it
+            error = np.abs(optimized - reference) * ref.mask()
+            made[it.iteration] = [first, image(optimized, sensor, "optimized"), ref_image,
+                                  image(error, sensor, "error")]
+        out[which] = made[it.iteration]
     return out
 
 
