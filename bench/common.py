@@ -84,6 +84,7 @@ class Settings:
     first_seed: int = 0
     spps: tuple[int, ...] = ()  # defaults_matrix: the spp of its cells (empty: its corner)
     depths: tuple[int, ...] = ()  # defaults_matrix: the max_depth of its cells (empty: all)
+    tutorials_repo: Path | None = None  # a checkout of mitsuba-tutorials (tutorials)
 
 
 # ---------------------------------------------------------------------------------------------

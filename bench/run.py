@@ -40,7 +40,7 @@ import gpu_run  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
-         "grids", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
+         "grids", "tutorials", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
          "thesis_tables", "starts", "real_scenes", "defaults_matrix", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
@@ -171,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="thesis_tables at the thesis's image size (256 px; hours on a CPU)")
     p.add_argument("--thesis-repo", type=Path, metavar="DIR",
                    help="a checkout of github.com/sapo17/BachelorThesis (real_scenes)")
+    p.add_argument("--tutorials-repo", type=Path, metavar="DIR",
+                   help="a checkout of github.com/mitsuba-renderer/mitsuba-tutorials (tutorials)")
     p.add_argument("--variant", default="",
                    help="the daemons' and plain loops' Mitsuba variant, e.g. cuda_ad_rgb")
     p.add_argument("--film", metavar="WxH", help="real_scenes: the film rendered (default "
@@ -223,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
                         film, args.iterations, args.seeds, tuple(args.tables),
                         args.defaults_only, args.cost_only, args.deadline,
                         dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
-                        tuple(args.spp), tuple(args.depth))
+                        tuple(args.spp), tuple(args.depth),
+                        args.tutorials_repo.resolve() if args.tutorials_repo else None)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
