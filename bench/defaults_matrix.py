@@ -3,7 +3,8 @@
 A default tuned where it was measured can cost elsewhere: on Table 4 at max_depth 64 the hold of
 eta paid, at depth 8 it cost a factor of three. Each cell here is one of the thesis's tables on
 its own scene (bench/real_scenes.py: its starts, truth, gated parameters and plain loop) at a
-max_depth (DEPTHS, set on the scene) and an spp (SPPS), 128x96 on the CPU. In a cell both
+max_depth (the scene file's own and DEPTHS, set on the scene) and an spp (SPPS), 128x96 on
+the CPU. In a cell both
 sides render that spp and depth: the reference is rendered at the truth with the scene's
 integrator at that depth, the daemon's job loads the scene with it (its ``depth`` choice may
 still cut an unbounded one, as everywhere) and the plain loop loads the same scene file. Per
@@ -16,9 +17,9 @@ parameters and of the time to 2% and 1% staying (every gated parameter within it
 Target per cell: the defaults' worst final error at most the plain loop's at equal time, and
 their time to 2% staying at most half the plain loop's where that gets there.
 
-The whole matrix (2 tables x 2 depths x 3 spp x 3 seeds) is hours on 2 cores; the case runs
-the corner spp {8, 16} x 2 seeds unless ``--seeds``, ``--spp`` and ``--depth`` say otherwise;
-``--quick``: one cell per table at 64x48, 20 iterations, one seed. ``--with-choice NAME=VALUE``
+The whole matrix (Table 2 x 3 depths + Table 4 x 2 depths, x 3 spp x 3 seeds) is hours on
+2 cores; the case runs the corner spp {8, 16} x 2 seeds unless ``--seeds``, ``--spp`` and
+``--depth`` say otherwise; ``--quick``: one cell per table at 64x48, 20 iterations, one seed. ``--with-choice NAME=VALUE``
 adds a candidate default per seed (the defaults with that choice set) beside them: a choice is
 judged by the cells, not by the configuration it was tuned on.
 """
@@ -34,7 +35,7 @@ import real_scenes as rs
 from common import Result, Settings, Target
 
 DAEMON = rs.DAEMON      # its references: 1024 spp in one call
-DEPTHS = (8, 64)         # the thesis's own: Table 2 8, Table 4 64
+DEPTHS = (8, 64)         # beside each scene file's own (Table 2 unbounded, Table 4 64)
 SPPS = (8, 16, 32)
 CORNER_SPPS, CORNER_SEEDS = (8, 16), 2
 CANDIDATE = "candidate"  # the daemon with ``--with-choice`` set: a default on trial
@@ -57,7 +58,10 @@ def cells(settings: Settings) -> list[tuple[rs.Table, int, int]]:
     if settings.quick:
         return [(t, DEPTHS[-1], t.plain_spp) for t in tables]
     spps = settings.spps or CORNER_SPPS
-    return [(t, d, s) for t in tables for d in settings.depths or DEPTHS for s in spps]
+
+    def depths(t: rs.Table) -> tuple[int, ...]:
+        return settings.depths or tuple(dict.fromkeys((t.depth, *DEPTHS)))
+    return [(t, d, s) for t in tables for d in depths(t) for s in spps]
 
 
 def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: int, spp: int,

@@ -92,6 +92,7 @@ class Table:
     plain_rates: dict[str, float] = field(default_factory=dict)
     plain_max: dict[str, float] = field(default_factory=dict)
     with_depth_64: bool = False      # also run with max_depth 64 set on the scene
+    depth: int = -1                  # the scene file's own max_depth (-1: unbounded)
 
 
 B, M = "object_bsdf", "medium1"
@@ -111,7 +112,7 @@ TABLES = [
           {f"{B}.alpha.value": [0.98], f"{M}.albedo.value.value": [0.01] * 3,
            f"{M}.sigma_t.value.value": [0.99], f"{B}.eta": [1.55]},
           (f"{M}.albedo.value.value", f"{M}.sigma_t.value.value", f"{B}.eta"), plain_spp=8,
-          plain_rates={f"{B}.eta": 0.003}, plain_max={f"{B}.eta": 1.55}),
+          plain_rates={f"{B}.eta": 0.003}, plain_max={f"{B}.eta": 1.55}, depth=64),
 ]
 
 
