@@ -160,6 +160,8 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     ({"eta_diferences": "off"}, "unknown choice 'eta_diferences' (did you mean "
                                 "'eta_differences'?)"),
     ({"depth": "maybe"}, "choice 'depth' cannot be 'maybe': give on or off"),
+    ({"eta_differences": "half"}, "choice 'eta_differences' cannot be 'half': give on, off, "
+                                  "quarter or full"),
 ])
 def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
     case = ts.table2(res=8)

@@ -188,6 +188,23 @@ def test_eta_by_differences_runs_frozen_on_the_unfrozen_trajectory(optimize):
     assert frozen.loop.group.recordings <= 6
 
 
+@pytest.mark.parametrize("value, sides_spp", [("on", 1), ("quarter", 1), ("full", 4)])
+def test_eta_differences_render_their_sides_at_the_share_of_spp_asked(optimize, value,
+                                                                        sides_spp):
+    """eta_differences=full renders eta +- h at the job's spp (4), the default at a quarter."""
+    from matoptd.engine.choices.eta_differences import DRAW
+    job = Job(optimize, _glass, _settings([ETA], eta_differences=value))
+    drawn, render = [], job.loop.renders.sensor_images
+
+    def spy(i, n, sensor, draw, spp):
+        drawn.append((draw, spp))
+        return render(i, n, sensor, draw, spp)
+    job.loop.renders.sensor_images = spy
+    job.run(8)
+    assert {spp for draw, spp in drawn if draw == DRAW} == {sides_spp}
+    assert job.steps[-1].values[ETA][0] < job.steps[0].values[ETA][0] - 1e-3  # toward 1.5
+
+
 def test_multires_level_changes_keep_the_recording(optimize):
     job = Job(optimize, _quad, _settings([TEXTURE])).run(8)
     level = next(c for c in job.loop.choices if c.name == "multires").level[TEXTURE]

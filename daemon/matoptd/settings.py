@@ -54,7 +54,9 @@ CHOICES = {
                    "lambda L) v (Nicolet et al. 2021), lambda and a rate not given chosen from "
                    "the mesh; JobSpec.large_steps_lambda sets lambda",
     "eta_differences": "a dielectric's eta differentiated by central differences of the "
-                       "images while its surface is near-specular",
+                       "images while its surface is near-specular (a value of quarter or "
+                       "full sets the spp of the two sides: a quarter of the job's, the "
+                       "default, or all of it)",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
                 "steadily",
     "gauss_newton": "a handful of scalars and colours stepped by damped Gauss-Newton in a "
@@ -84,8 +86,21 @@ def coarse_to_fine(value: str) -> tuple[str, int]:
     return mode, int(count or 0)
 
 
+DIFFERENCE_SPP = {"quarter": 4, "full": 1}  # eta_differences' value -> spp divisor of its sides
+
+
+def difference_divisor(value: str) -> int:
+    """eta_differences' value as the divisor of the job's spp its two sides render at: "on"
+    or "quarter" 4, "full" 1. ValueError saying what it may be."""
+    value = "quarter" if value == "on" else value
+    if value not in DIFFERENCE_SPP:
+        raise ValueError(f"choice 'eta_differences' cannot be '{value}': give on, off, "
+                         f"{' or '.join(DIFFERENCE_SPP)}")
+    return DIFFERENCE_SPP[value]
+
+
 # Choices whose value says more than on/off: name -> its parser (ValueError for a bad one).
-CHOICE_OPTIONS = {"multires": coarse_to_fine}
+CHOICE_OPTIONS = {"multires": coarse_to_fine, "eta_differences": difference_divisor}
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ an optimized roughness that sharpens switches it on; a smooth dielectric always)
 The difference of the losses themselves would also follow the render noise's variance, which
 changes with eta (on a rough principled object it ended at eta 1.45 for a truth of 1.49); I is
 independent of D's samples, as Mitsuba's adjoint pass is of its primal pass. Its cost: two
-primal renders at a quarter of the job's spp per eta and sensor, only while it is on. Where
+primal renders at a quarter of the job's spp per eta and sensor (the choice's value ``full``:
+at the job's spp), only while it is on. Where
 the iterations are frozen, I comes out of the iteration's recording and the two renders replay
 one of their own (engine/frozen.py), eta +- h set outside it on the scene it reads. Once eta
 has settled (settling.py: over the last WINDOW iterations it netted less than SETTLED of the
@@ -28,14 +29,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ... import settings as job_settings
 from .. import parameters
 from .base import HOLD, Choice
 from .settling import Path
 
-# The sides take a quarter of the job's spp: both share their samples, so most noise cancels.
-# On the Table 2 and 3 kinds eta ended as close as at full spp (0.0-0.5%) and an iteration took
-# 25% less time.
-SPP_DIVISOR = 4
+# By default the sides take a quarter of the job's spp (settings.DIFFERENCE_SPP): both share
+# their samples, so most noise cancels. On the Table 2 and 3 kinds eta ended as close as at full
+# spp (0.0-0.5%) and an iteration took 25% less time.
 STEP = 0.01   # h: 1% of the range near 1.5
 DRAW = 0x9E3779B9  # samples of their own, shared by both sides
 EVERY = 4     # once eta has settled, its difference every EVERY-th iteration
@@ -69,9 +70,13 @@ class EtaDifferences(Choice):
         self.sparse = int(saved[0]) if saved is not None else 0  # iterations not differenced
         self.applies = bool(self.widths)
         self.integrator = ctx.chosen.name
+        self.divisor = job_settings.difference_divisor(self.settings.choice_value(self.name)
+                                                       if self.on else "on")
         self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
                                for k in self.widths)
-                     + f" (every {EVERY}th iteration once it settles): {self.integrator} samples "
+                     + f" (every {EVERY}th iteration once it settles; its sides at "
+                     f"{'the job' if self.divisor == 1 else f'1/{self.divisor} of the job'}'s "
+                     f"spp): {self.integrator} samples "
                      "the refracted direction detached from eta, so near the specular limit its "
                      "own gradient of eta misses where the refracted rays go" if self.on else
                      f"{', '.join(self.widths)}: the gradient from back-propagation alone, at "
@@ -90,7 +95,7 @@ class EtaDifferences(Choice):
     def on_gradient(self, ctx) -> dict[str, object]:
         i, out = ctx.iteration, {}
         theta = {k: ctx.value(k) for k in [*self.widths, *self.optimized]}
-        spp = max(1, ctx.spp // SPP_DIVISOR)
+        spp = max(1, ctx.spp // self.divisor)
         for key, widths in self.widths.items():
             path = self.paths[key]
             if key in ctx.held or not parameters.near_specular(widths, theta):
