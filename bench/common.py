@@ -85,6 +85,9 @@ class Settings:
     spps: tuple[int, ...] = ()  # defaults_matrix: the spp of its cells (empty: its corner)
     depths: tuple[int, ...] = ()  # defaults_matrix: the max_depth of its cells (empty: all)
     tutorials_repo: Path | None = None  # a checkout of mitsuba-tutorials (tutorials)
+    # defaults_matrix: the with_choices job in the defaults' place, judged as they are (the
+    # plain loop at equal time runs for its time; no plain run at equal iterations)
+    candidate_only: bool = False
 
 
 # ---------------------------------------------------------------------------------------------

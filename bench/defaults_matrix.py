@@ -21,7 +21,9 @@ The whole matrix (Table 2 x 3 depths + Table 4 x 2 depths, x 3 spp x 3 seeds) is
 2 cores; the case runs the corner spp {8, 16} x 2 seeds unless ``--seeds``, ``--spp`` and
 ``--depth`` say otherwise; ``--quick``: one cell per table at 64x48, 20 iterations, one seed. ``--with-choice NAME=VALUE``
 adds a candidate default per seed (the defaults with that choice set) beside them: a choice is
-judged by the cells, not by the configuration it was tuned on.
+judged by the cells, not by the configuration it was tuned on. With ``--candidate-only`` the
+candidate takes the defaults' place and is judged as they are (the plain loop at equal time
+runs for its time), at two thirds of the cost.
 """
 
 from __future__ import annotations
@@ -74,16 +76,21 @@ def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: i
     rs.run_plain(prep, p, 99, server.variant, rs.WARM_UP)  # kernels compiled on both sides
     rs.run_daemon(server, prep, "warm-up", rs.daemon_spec(prep, 99, rs.WARM_UP))
     runs: list[rs.Run] = []
+    only = settings.with_choices if settings.candidate_only else {}
     for seed in range(settings.first_seed, settings.first_seed + p.seeds):
-        sides = [lambda: rs.run_plain(prep, p, seed, server.variant, p.iterations),
-                 lambda: rs.run_daemon(server, prep, "daemon",
-                                       rs.daemon_spec(prep, seed, p.iterations))]
-        for side in sides[seed % 2:] + sides[:seed % 2]:
-            runs.append(side())
+        if only:  # the candidate as "daemon", and no plain run at equal iterations
+            runs.append(rs.run_daemon(server, prep, "daemon",
+                                      rs.daemon_spec(prep, seed, p.iterations, only)))
+        else:
+            sides = [lambda: rs.run_plain(prep, p, seed, server.variant, p.iterations),
+                     lambda: rs.run_daemon(server, prep, "daemon",
+                                           rs.daemon_spec(prep, seed, p.iterations))]
+            for side in sides[seed % 2:] + sides[:seed % 2]:
+                runs.append(side())
         job = runs[-1] if runs[-1].method == "daemon" else runs[-2]
         runs.append(rs.run_plain(prep, p, seed, server.variant, p.iterations,
                                  seconds=job.seconds[-1]))
-        if settings.with_choices:  # a candidate default beside the defaults
+        if settings.with_choices and not only:  # a candidate default beside the defaults
             runs.append(rs.run_daemon(server, prep, CANDIDATE, rs.daemon_spec(
                 prep, seed, p.iterations, settings.with_choices)))
         print(f"bench: defaults_matrix {table.name} depth {depth} spp {spp} seed {seed}: "
@@ -130,6 +137,7 @@ def judge(table: rs.Table, cell: Cell) -> tuple[str, bool]:
 
 def run(settings: Settings, server: common.Daemon) -> Result:
     result = Result("defaults_matrix", "The defaults on a matrix of depths and spp")
+    extra = settings.with_choices and not settings.candidate_only  # the candidate's columns
     if settings.thesis_repo is None:
         result.targets.append(rs.NO_REPO)
         return result
@@ -163,10 +171,13 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         "| table | max_depth | spp | seeds | worst, daemon | worst, plain at equal time | "
         "worst, plain at equal iterations | to 2% (s) | to 1% (s) | target |"
         + (" worst, candidate | candidate to 2% (s) | seconds, candidate / daemon |"
-           if settings.with_choices else ""),
-        "|" + "---|" * (13 if settings.with_choices else 10), *rows]
-    if settings.with_choices:
-        result.lines.insert(1, "Candidate: the defaults with " + ", ".join(
-            f"`{k}={v}`" for k, v in settings.with_choices.items()) + ".")
+           if extra else ""),
+        "|" + "---|" * (13 if extra else 10), *rows]
+    named = ", ".join(f"`{k}={v}`" for k, v in settings.with_choices.items())
+    if settings.candidate_only:
+        result.lines.insert(1, f"The daemon's jobs: the defaults with {named}, in their place "
+                            "(no plain run at equal iterations).")
+    elif settings.with_choices:
+        result.lines.insert(1, f"Candidate: the defaults with {named}.")
     result.files.append(common.write_csv(settings.out / "defaults_matrix.csv", csv))
     return result

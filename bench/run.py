@@ -201,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
                    help="real_scenes, defaults_matrix: also a daemon job per seed with this "
                    "choice set (e.g. gauss_newton=on), beside the defaults")
+    p.add_argument("--candidate-only", action="store_true",
+                   help="defaults_matrix: the --with-choice job in place of the defaults, "
+                   "judged as they are (the plain loop at equal time runs for its time)")
     p.add_argument("--first-seed", type=int, default=0,
                    help="real_scenes, defaults_matrix: the first seed run (the others follow it)")
     p.add_argument("--spp", type=int, nargs="+", default=(), metavar="SPP",
@@ -226,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
                         args.defaults_only, args.cost_only, args.deadline,
                         dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
                         tuple(args.spp), tuple(args.depth),
-                        args.tutorials_repo.resolve() if args.tutorials_repo else None)
+                        args.tutorials_repo.resolve() if args.tutorials_repo else None,
+                        args.candidate_only)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None
