@@ -13,7 +13,9 @@ loop, at equal work.
    whole job from iteration 0's end to the job's end, so the defaults' own extra work
    (differences, J's passes) counts, and so do its result images (64 spp renders the plain loop
    never makes). The parts are reported apart: the iterations (differences in), and the job's
-   end (J, then the result renders).
+   end (J, then the result renders). The defaults reach parameters where these scenes cost more
+   to render than where the plain loop goes, so a fourth side takes the plain loop's own steps
+   (the plain preset) frozen: equal work, the same trajectory, the machinery's figure.
 
 Each size runs three rounds after a warm-up of each side (kernels compiled); within a round
 the sides take turns, their order rotated from round to round. Ratios are per round, then
@@ -38,6 +40,7 @@ THESIS_SIZES = [(32, 24), (64, 48), (128, 96)]
 SPP = 4
 # Targets for the daemon's defaults against the plain loop on the thesis's scenes (CPU).
 TARGETS = {32: 0.5, 128: 0.8}
+EQUAL_WORK = "plain steps, frozen"  # the plain preset (the plain loop's steps), frozen
 
 
 Side = Callable[[int], tuple[float, float]]  # round -> (seconds per iteration, last loss)
@@ -122,19 +125,24 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
               "in), the plain loop's from iteration 0's end to its last; ms per iteration "
               "(median) and ratios per round (median). The parts of the defaults' time: "
               "their iterations alone (differences in), and the job's end: J (the standard "
-              "errors, as the job's notes time them) and the rest (result images at 64 spp)."]
+              "errors, as the job's notes time them) and the rest (result images at 64 spp). "
+              "Equal work: the plain loop's own steps (the plain preset) frozen, their "
+              "iterations alone."]
     for table in real_scenes.TABLES:
         for width, height in THESIS_SIZES:
             size = f"{width}x{height}"
             p = real_scenes.Plan((width, height), iterations, 1, False, server.cuda)
             prep = real_scenes.prepare(server.client, table, p, settings)
-            parts: dict[str, list[float]] = {"iterations": [], "J": [], "end": []}
+            parts: dict[str, list[float]] = {"iterations": [], "J": [], "end": [],
+                                             "equal work": []}
 
-            def job(frozen: str) -> Side:
+            def job(method: str) -> Side:
                 def side(r: int) -> tuple[float, float]:
-                    spec = real_scenes.daemon_spec(prep, 0, iterations)
+                    # EQUAL_WORK: the plain preset (the plain loop's steps), frozen
+                    spec = real_scenes.daemon_spec(prep, 0, iterations, {"frozen": "on"},
+                                                   preset_plain=method == EQUAL_WORK)
                     spec.spp = table.plain_spp
-                    if frozen == "off":
+                    if method == "defaults, frozen off":
                         spec.choices["frozen"] = "off"
                     done = common.run_job(server.client, spec, server=server)
                     common.require_success(done, f"frozen {table.name}")
@@ -142,28 +150,32 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
                     loop = done.seconds[-1] - done.seconds[0]
                     whole = ((done.wall - done.first_iteration) / n
                              if done.first_iteration is not None else float("nan"))
-                    if frozen == "on" and r >= 0:
+                    if method == "defaults" and r >= 0:
                         parts["iterations"].append(loop / n)
                         parts["end"].append(whole * n - loop)
                         parts["J"].append(_j_seconds(done.job.notes))
-                    return _row(rows, table.name, size, "defaults" if frozen == "on" else
-                                "defaults, frozen off", r, whole, done.history[-1].loss)
+                    if method == EQUAL_WORK and r >= 0:
+                        parts["equal work"].append(loop / n)
+                    return _row(rows, table.name, size, method, r, whole,
+                                done.history[-1].loss)
                 return side
 
             def loop(r: int) -> tuple[float, float]:
                 run = real_scenes.run_plain(prep, p, 0, server.variant, iterations)
                 return _row(rows, table.name, size, "plain", r, run.per_iteration, float("nan"))
 
-            times, _ = _rounds({"defaults": job("on"), "defaults, frozen off": job("off"),
-                                "plain": loop}, rounds)
+            times, _ = _rounds({m: job(m) for m in ("defaults", "defaults, frozen off",
+                                                    EQUAL_WORK)} | {"plain": loop}, rounds)
             ratio = _ratio(times, "defaults", "plain")
             off = _ratio(times, "defaults, frozen off", "plain")
             alone = common.median([a / b for a, b in zip(parts["iterations"], times["plain"])])
+            equal = common.median([a / b for a, b in zip(parts["equal work"], times["plain"])])
             target = TARGETS.get(width)
             targets.append(Target(
                 f"{table.name} {size}: defaults / plain loop"
                 + (f" (<= {target}, CPU)" if target else ""),
-                f"{ratio:.2f} (their iterations alone {alone:.2f}; frozen off: {off:.2f})",
+                f"{ratio:.2f} (their iterations alone {alone:.2f}; frozen off: {off:.2f}; the "
+                f"plain loop's steps frozen, iterations alone: {equal:.2f})",
                 None if target is None else ratio <= target))
             ms = {m: common.median(t) * 1000 for m, t in times.items()}
             end, j = common.median(parts["end"]), common.median(parts["J"])
@@ -173,7 +185,9 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
                          f"{off:.2f}; the defaults' iterations alone "
                          f"{common.median(parts['iterations']) * 1000:.0f} ms ({alone:.2f} of "
                          f"the plain loop's), their end {end:.2f} s (J {j:.2g} s, the result "
-                         f"renders and the rest {end - j:.2f} s)")
+                         f"renders and the rest {end - j:.2f} s); the plain loop's own steps "
+                         f"frozen (equal work), their iterations alone "
+                         f"{common.median(parts['equal work']) * 1000:.0f} ms ({equal:.2f})")
 
 
 _J = re.compile(r"standard errors: \d+ components, ([0-9.e+-]+) s")

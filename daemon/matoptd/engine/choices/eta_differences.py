@@ -72,13 +72,13 @@ class EtaDifferences(Choice):
         self.integrator = ctx.chosen.name
         self.divisor = job_settings.difference_divisor(self.settings.choice_value(self.name)
                                                        if self.on else "on")
+        share = "the job's spp" if self.divisor == 1 else f"1/{self.divisor} of the job's spp"
         self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
                                for k in self.widths)
-                     + f" (every {EVERY}th iteration once it settles; its sides at "
-                     f"{'the job' if self.divisor == 1 else f'1/{self.divisor} of the job'}'s "
-                     f"spp): {self.integrator} samples "
-                     "the refracted direction detached from eta, so near the specular limit its "
-                     "own gradient of eta misses where the refracted rays go" if self.on else
+                     + f" (every {EVERY}th iteration once it settles; its sides at {share}): "
+                     f"{self.integrator} samples the refracted direction detached from eta, so "
+                     "near the specular limit its own gradient of eta misses where the "
+                     "refracted rays go" if self.on else
                      f"{', '.join(self.widths)}: the gradient from back-propagation alone, at "
                      "any width")
         self._say()
