@@ -139,11 +139,10 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
             def job(method: str) -> Side:
                 def side(r: int) -> tuple[float, float]:
                     # EQUAL_WORK: the plain preset (the plain loop's steps), frozen
-                    spec = real_scenes.daemon_spec(prep, 0, iterations, {"frozen": "on"},
+                    frozen = "off" if method == "defaults, frozen off" else "on"
+                    spec = real_scenes.daemon_spec(prep, 0, iterations, {"frozen": frozen},
                                                    preset_plain=method == EQUAL_WORK)
                     spec.spp = table.plain_spp
-                    if method == "defaults, frozen off":
-                        spec.choices["frozen"] = "off"
                     done = common.run_job(server.client, spec, server=server)
                     common.require_success(done, f"frozen {table.name}")
                     n = len(done.history) - 1

@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ... import settings as job_settings
+from ...settings import difference_divisor
 from .. import parameters
 from .base import HOLD, Choice
 from .settling import Path
@@ -70,8 +70,8 @@ class EtaDifferences(Choice):
         self.sparse = int(saved[0]) if saved is not None else 0  # iterations not differenced
         self.applies = bool(self.widths)
         self.integrator = ctx.chosen.name
-        self.divisor = job_settings.difference_divisor(self.settings.choice_value(self.name)
-                                                       if self.on else "on")
+        self.divisor = difference_divisor(self.settings.choice_value(self.name) if self.on
+                                          else "on")
         share = "the job's spp" if self.divisor == 1 else f"1/{self.divisor} of the job's spp"
         self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
                                for k in self.widths)
