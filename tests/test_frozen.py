@@ -191,9 +191,11 @@ def test_eta_by_differences_runs_frozen_on_the_unfrozen_trajectory(optimize):
 @pytest.mark.parametrize("value, sides_spp", [("on", 1), ("quarter", 1), ("full", 4)])
 def test_eta_differences_render_their_sides_at_the_share_of_spp_asked(optimize, value,
                                                                         sides_spp):
-    """eta_differences=full renders eta +- h at the job's spp (4), the default at a quarter."""
+    """eta_differences=full renders eta +- h at the job's spp (4), the default at a quarter.
+    Unfrozen: the sides' spp is the same either way, and two frozen glass jobs in one process
+    leave an AD edge that a later forward-mode pass trips on (a known defect, not this one's)."""
     from matoptd.engine.choices.eta_differences import DRAW
-    job = Job(optimize, _glass, _settings([ETA], eta_differences=value))
+    job = Job(optimize, _glass, _settings([ETA], eta_differences=value, frozen="off"))
     drawn, render = [], job.loop.renders.sensor_images
 
     def spy(i, n, sensor, draw, spp):
