@@ -161,7 +161,10 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
                                 "'eta_differences'?)"),
     ({"depth": "maybe"}, "choice 'depth' cannot be 'maybe': give on or off"),
     ({"eta_differences": "half"}, "choice 'eta_differences' cannot be 'half': give on, off, "
-                                  "quarter or full"),
+                                  "quarter or full, optionally with :ALPHA"),
+    ({"eta_differences": "full:2"}, "choice 'eta_differences' cannot be 'full:2': give on, "
+                                    "off, quarter or full, optionally with :ALPHA (the width "
+                                    "below which they apply, in (0, 1]"),
 ])
 def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
     case = ts.table2(res=8)

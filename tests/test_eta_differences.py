@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from matoptd.engine.parameters import (SPECULAR_ALPHA, microfacet_alpha, microfacet_widths,
-                                       near_specular)
+from matoptd.engine.parameters import microfacet_alpha, microfacet_widths, near_specular
+from matoptd.settings import SPECULAR_ALPHA, Differences, differences
 
 PRINCIPLED = ["obj.bsdf.base_color.value", "obj.bsdf.roughness.value", "obj.bsdf.eta",
               "obj.bsdf.spec_trans.value"]
@@ -36,12 +36,32 @@ def test_alpha_as_the_surface_shows_it():
 
 def test_differences_only_while_the_surface_is_near_specular():
     widths = {"obj.bsdf.roughness.value": np.array([0.3])}  # the scene's value
-    assert not near_specular(widths, {})  # alpha 0.09: prb's own gradient is sound
+    assert not near_specular(widths, {}, SPECULAR_ALPHA)  # alpha 0.09: prb's own gradient
     # An optimized roughness is read at the current iteration: the switch follows it down.
-    assert near_specular(widths, {"obj.bsdf.roughness.value": np.array([0.1])})
-    assert not near_specular(widths, {"obj.bsdf.roughness.value": np.array([0.2])})
-    assert near_specular({}, {})  # a smooth dielectric: always
+    assert near_specular(widths, {"obj.bsdf.roughness.value": np.array([0.1])}, SPECULAR_ALPHA)
+    assert not near_specular(widths, {"obj.bsdf.roughness.value": np.array([0.2])},
+                             SPECULAR_ALPHA)
+    # ... and a job's wider threshold (eta_differences=quarter:0.05) keeps alpha 0.04 in.
+    assert near_specular(widths, {"obj.bsdf.roughness.value": np.array([0.2])}, 0.05)
+    assert near_specular({}, {}, SPECULAR_ALPHA)  # a smooth dielectric: always
     # Anisotropic: only when both directions are narrow.
     both = {"g.bsdf.alpha_u.value": np.array([0.01]), "g.bsdf.alpha_v.value": np.array([0.3])}
-    assert not near_specular(both, {})
-    assert near_specular(both, {"g.bsdf.alpha_v.value": np.array([SPECULAR_ALPHA / 2])})
+    assert not near_specular(both, {}, SPECULAR_ALPHA)
+    assert near_specular(both, {"g.bsdf.alpha_v.value": np.array([SPECULAR_ALPHA / 2])},
+                         SPECULAR_ALPHA)
+
+
+@pytest.mark.parametrize("value, how", [
+    ("on", Differences(4, SPECULAR_ALPHA)), ("quarter", Differences(4, SPECULAR_ALPHA)),
+    ("full", Differences(1, SPECULAR_ALPHA)), ("on:0.05", Differences(4, 0.05)),
+    ("full:0.1", Differences(1, 0.1))])
+def test_the_value_sets_the_sides_spp_and_the_width_below_which_they_apply(value, how):
+    assert differences(value) == how
+
+
+@pytest.mark.parametrize("value", ["half", "quarter:", "quarter:wide", "full:0", "on:1.5",
+                                   "quarter:nan"])
+def test_a_value_outside_the_grammar_is_refused_saying_what_it_may_be(value):
+    with pytest.raises(ValueError, match=f"cannot be '{value}': give on, off, quarter or "
+                                         r"full, optionally with :ALPHA"):
+        differences(value)

@@ -82,11 +82,11 @@ def _grid():
             "type": "gridvolume", "filter_type": "nearest", "grid": mi.VolumeGrid(voxels)}}})
 
 
-def _glass():
+def _glass(alpha: float = 0.01):
     """A rough glass ball (alpha 0.01: eta by differences) in front of a checkered backdrop."""
     backdrop = np.indices((8, 8)).sum(axis=0) % 2 * 0.6 + 0.2
     return _lit("prb", 4, [0, 0, 4], ball={
-        "type": "sphere", "radius": 0.7, "bsdf": {"type": "roughdielectric", "alpha": 0.01,
+        "type": "sphere", "radius": 0.7, "bsdf": {"type": "roughdielectric", "alpha": alpha,
                                                  "int_ior": 1.5}},
         wall={"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1.5])
               @ mi.ScalarTransform4f().scale(2.0), "bsdf": {"type": "diffuse", "reflectance": {
@@ -188,14 +188,18 @@ def test_eta_by_differences_runs_frozen_on_the_unfrozen_trajectory(optimize):
     assert frozen.loop.group.recordings <= 6
 
 
-@pytest.mark.parametrize("value, sides_spp", [("on", 1), ("quarter", 1), ("full", 4)])
-def test_eta_differences_render_their_sides_at_the_share_of_spp_asked(optimize, value,
-                                                                        sides_spp):
-    """eta_differences=full renders eta +- h at the job's spp (4), the default at a quarter.
+@pytest.mark.parametrize("value, alpha, sides_spp", [
+    ("on", 0.01, {1}), ("quarter", 0.01, {1}), ("full", 0.01, {4}),
+    ("on", 0.03, set()), ("quarter:0.05", 0.03, {1}), ("full:0.05", 0.03, {4})])
+def test_eta_differences_render_their_sides_at_the_spp_and_below_the_width_asked(
+        optimize, value, alpha, sides_spp):
+    """eta_differences=full renders eta +- h at the job's spp (4), the default at a quarter;
+    on glass of alpha 0.03 only a value's :ALPHA above it (0.05) turns them on.
     Unfrozen: the sides' spp is the same either way, and two frozen glass jobs in one process
     leave an AD edge that a later forward-mode pass trips on (a known defect, not this one's)."""
     from matoptd.engine.choices.eta_differences import DRAW
-    job = Job(optimize, _glass, _settings([ETA], eta_differences=value, frozen="off"))
+    job = Job(optimize, lambda: _glass(alpha), _settings([ETA], eta_differences=value,
+                                                         frozen="off"))
     drawn, render = [], job.loop.renders.sensor_images
 
     def spy(i, n, sensor, draw, spp):
@@ -203,8 +207,9 @@ def test_eta_differences_render_their_sides_at_the_share_of_spp_asked(optimize, 
         return render(i, n, sensor, draw, spp)
     job.loop.renders.sensor_images = spy
     job.run(8)
-    assert {spp for draw, spp in drawn if draw == DRAW} == {sides_spp}
-    assert job.steps[-1].values[ETA][0] < job.steps[0].values[ETA][0] - 1e-3  # toward 1.5
+    assert {spp for draw, spp in drawn if draw == DRAW} == sides_spp
+    if sides_spp:  # toward 1.5 (at 16 px and 4 spp prb's own gradient of eta is a coin toss)
+        assert job.steps[-1].values[ETA][0] < job.steps[0].values[ETA][0] - 1e-3
 
 
 def test_multires_level_changes_keep_the_recording(optimize):

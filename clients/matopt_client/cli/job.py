@@ -214,7 +214,8 @@ def checked_settings(client: mc.Client, settings: workflow.JobSettings) -> None:
 @click.option("--choice", "choices", multiple=True, metavar="NAME=on|off",
               help="turn one of the engine's choices off (or on), e.g. eta_differences=off; "
                    "multires also takes nearest or linear, optionally :LEVELS (linear:3); "
-                   "eta_differences also takes quarter or full (its renders' share of spp); "
+                   "eta_differences also takes quarter or full (its renders' share of spp), "
+                   "optionally :ALPHA (the width below which they apply; quarter:0.05); "
                    "'matopt job status' lists those in force, with why and cost (repeatable)")
 @click.option("--preset", type=click.Choice(["plain"]),
               help=f"plain: Mitsuba's plain Adam loop (no engine choices, constant schedule, "

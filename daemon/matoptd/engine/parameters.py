@@ -66,11 +66,6 @@ ETA_MIN = 1.001
 # (docs/benchmarks.md, Table 2).
 ROUGHNESS_MIN = 0.01
 ROUGHNESS_FLOOR = 0.0318
-# Below this alpha prb's gradient of a dielectric's eta is unreliable, so the optimizer takes
-# eta's by central differences (glass blob, 48 px, 16 spp, 5 seeds: at alpha 0.01 its sign was
-# wrong 2 times in 5 at eta 1.40, as at the floor; from alpha 0.029 up it matched the
-# difference at 1.40 and 1.62, and the difference's two renders would only cost time).
-SPECULAR_ALPHA = 0.02
 # Microfacet widths are optimized as u = log(v): near a specular truth (alpha 0.001-0.01) a
 # linear step of 0.1 is ten times the value and noise kicks it between the floor and 0.3;
 # in log space a step changes the width by ~10% at any scale. A width whose range starts at 0
@@ -143,11 +138,12 @@ def microfacet_alpha(key: str, value: np.ndarray) -> float:
     return max(0.001, v * v) if property_name(key) == "roughness" else v
 
 
-def near_specular(widths: dict[str, np.ndarray], current: dict[str, np.ndarray]) -> bool:
-    """Whether every width beside an eta shows alpha below SPECULAR_ALPHA (a smooth dielectric
+def near_specular(widths: dict[str, np.ndarray], current: dict[str, np.ndarray],
+                  below: float) -> bool:
+    """Whether every width beside an eta shows alpha below ``below`` (a smooth dielectric
     has none: always). ``widths`` holds the scene's values; an optimized width is read from
     ``current`` (theta_i), so an eta switches to differences as its surface sharpens."""
-    return all(microfacet_alpha(w, current.get(w, fixed)) < SPECULAR_ALPHA
+    return all(microfacet_alpha(w, current.get(w, fixed)) < below
                for w, fixed in widths.items())
 
 

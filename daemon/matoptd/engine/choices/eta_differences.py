@@ -5,8 +5,9 @@ prb and prbvolpath sample the refracted direction detached from eta, so their gr
 holds only the Fresnel weights, not where the refracted rays go, which decides the image once
 the lobe is narrow: on glass at the roughness floor its sign was random at every eta from 1.40
 to 1.70; at alpha 0.01 wrong 2 times in 5; from alpha 0.029 up it matched the difference. While
-every width beside an eta shows alpha < parameters.SPECULAR_ALPHA (read at each iteration, so
-an optimized roughness that sharpens switches it on; a smooth dielectric always):
+every width beside an eta shows alpha below settings.SPECULAR_ALPHA, or the value's ALPHA (read
+at each iteration, so an optimized roughness that sharpens switches it on; a smooth dielectric
+always):
 
     D = (I(eta + h) - I(eta - h)) / 2h           (both sides from the same samples)
     dL/d(eta) ~ (L(I + h D) - L(I - h D)) / 2h   (I: this iteration's own renders)
@@ -29,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ...settings import difference_divisor
+from ...settings import differences
 from .. import parameters
 from .base import HOLD, Choice
 from .settling import Path
@@ -70,9 +71,9 @@ class EtaDifferences(Choice):
         self.sparse = int(saved[0]) if saved is not None else 0  # iterations not differenced
         self.applies = bool(self.widths)
         self.integrator = ctx.chosen.name
-        self.divisor = difference_divisor(self.settings.choice_value(self.name) if self.on
-                                          else "on")
-        share = "the job's spp" if self.divisor == 1 else f"1/{self.divisor} of the job's spp"
+        self.how = differences(self.settings.choice_value(self.name) if self.on else "on")
+        share = ("the job's spp" if self.how.divisor == 1
+                 else f"1/{self.how.divisor} of the job's spp")
         self.said = ("; ".join(f"{k} by central differences of the loss {self._when(k)}"
                                for k in self.widths)
                      + f" (every {EVERY}th iteration once it settles; its sides at {share}): "
@@ -89,16 +90,16 @@ class EtaDifferences(Choice):
 
     def _when(self, key: str) -> str:
         w = self.widths[key]
-        return (f"while {' and '.join(w)} shows alpha < {parameters.SPECULAR_ALPHA:g}" if w
+        return (f"while {' and '.join(w)} shows alpha < {self.how.alpha:g}" if w
                 else "(a smooth dielectric)")
 
     def on_gradient(self, ctx) -> dict[str, object]:
         i, out = ctx.iteration, {}
         theta = {k: ctx.value(k) for k in [*self.widths, *self.optimized]}
-        spp = max(1, ctx.spp // self.divisor)
+        spp = max(1, ctx.spp // self.how.divisor)
         for key, widths in self.widths.items():
             path = self.paths[key]
-            if key in ctx.held or not parameters.near_specular(widths, theta):
+            if key in ctx.held or not parameters.near_specular(widths, theta, self.how.alpha):
                 path.add(ctx.latent(key), 0.0 if key in ctx.held else ctx.rate(key))
                 continue  # held, or the AD gradient stands
             if path.settled() and i % EVERY:
