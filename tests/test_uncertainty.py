@@ -15,7 +15,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 
 from conftest import finished as run, wait_iteration, wait_state
-from scenes import camera, create_scene, upload, vol
+from scenes import camera, create_scene, glass_with_medium, upload, vol
 
 RES = 24
 WALLS = {"red.reflectance.value": [0.570068, 0.0430135, 0.0443706],
@@ -91,6 +91,33 @@ def test_a_paused_job_estimates_its_standard_errors_on_request(stubs, cornell, w
     stubs.jobs.ResumeJob(pb.ResumeJobRequest(name=job.name))
     assert wait_iteration(stubs, job.name, at + 3).resumed_from == f"checkpoint at iteration {at}"
     stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+
+
+def test_a_paused_jobs_estimate_beside_a_loaded_glass_job(stubs, cornell, walls):
+    """The estimate loads on a worker where another user's glass job is loaded and stepping.
+    Mitsuba dispatches a BSDF's call over every live instance, the glass's too: the
+    estimate's forward-mode passes must not meet the AD edges that job's scene holds."""
+    scene, reference = cornell
+    paused = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=scene.name, references=[pb.Reference(blob=reference)], iterations=100_000, spp=8,
+        parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3) for k in WALLS])))
+    wait_iteration(stubs, paused.name, 10)
+    stubs.jobs.PauseJob(pb.PauseJobRequest(name=paused.name))
+    wait_state(stubs, paused.name, (pb.JOB_STATE_PAUSED,))
+    glass = create_scene(stubs, {"glass.xml": glass_with_medium(16).encode()}, "glass.xml")
+    ref = stubs.scenes.RenderScene(pb.RenderSceneRequest(name=glass.name, spp=16)).images[0]
+    loaded = stubs.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=glass.name, references=[pb.Reference(blob=ref.exr_blob)], iterations=100_000,
+        spp=2, parameters=[pb.ParameterSpec(key="blob.bsdf.eta", initial_value=[1.4])])))
+    wait_iteration(stubs, loaded.name, 3)
+    asked = stubs.jobs.GetJobResult(pb.GetJobResultRequest(
+        name=paused.name, which=pb.WHICH_LAST, estimate_standard_errors=True))
+    assert stubs.jobs.GetJob(pb.GetJobRequest(name=loaded.name)).state == pb.JOB_STATE_RUNNING
+    for p in asked.parameters:
+        assert len(p.standard_error) == 3 and pb.INTERVAL_NOT_DETERMINED not in p.interval, asked.standard_error_notes
+    assert not any("fail" in n for n in asked.standard_error_notes), asked.standard_error_notes
+    for job in (paused, loaded):
+        stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
 
 
 def test_a_light_and_a_gain_that_only_scale_together_are_not_determined(stubs, cornell):

@@ -105,6 +105,7 @@ class Optimization:
         self.guards = Guards()
         self.said: list[str] = []  # notes said during the job (reported at its end)
         self.group = None  # a choice's stand-in for the renders and backward pass (frozen)
+        self.parked = False  # the scene's parameters detached until the next step (park)
         saved = codec.loads(checkpoint) if checkpoint is not None else None
 
         self.hooks = Hooks(self.ctx, choices if choices is not None else build(settings),
@@ -161,6 +162,17 @@ class Optimization:
             params[key] = value if self.group is None else self.group.leaf(key, value)
         params.update()
 
+    def park(self) -> None:
+        """The scene's parameters detached until the next step, while another run shares the
+        process (a standard-error estimate beside a loaded job): Mitsuba dispatches a BSDF's
+        virtual call over every live instance, this scene's too, and that run's forward-mode
+        passes refuse the AD edges this scene holds (an eta's to the 1/eta its plugin keeps)."""
+        params = self.renders.params
+        for key in self.parameters:
+            params[key] = dr.detach(params[key])
+        params.update()
+        self.parked = True
+
     def theta(self) -> tuple[dict[str, np.ndarray], dict[int, np.ndarray]]:
         """theta and the gains, read in one launch together with the guard counts of the last
         step."""
@@ -183,8 +195,9 @@ class Optimization:
         for key, variable in changed.items():
             self.opt[key] = variable
             self.opt.set_learning_rate({key: self.records[key].step_rate})
-        if any(self.records[k].scene is not None for k in changed):
+        if self.parked or any(self.records[k].scene is not None for k in changed):
             self._apply()
+            self.parked = False
         last = i + 1 >= s.iterations
         self._theta = None  # theta_i, read once the first render has evaluated it
         self._judged = None  # the windowed loss of this iteration, once known

@@ -177,6 +177,8 @@ class MitsubaEngine:
         job's kernels bigger, and a scene loaded beside it gets other instance ids, which
         the kernel cache sees as other kernels."""
         self._preview = None
+        for run in self.runs.values():  # their scenes' AD edges out of this run's passes
+            run.opt.park()
         began = time.perf_counter()
         keys = [p.key for p in settings.parameters]
         key = (settings.scene.key, tuple(keys))

@@ -242,6 +242,8 @@ def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, 
     try:
         return _of_kept(opt, chosen, kinds, shapes)
     except Exception as exc:  # noqa: BLE001 - the job's results stand without them
+        while exc.__cause__ is not None:  # Dr.Jit's says "see above": the cause says what
+            exc = exc.__cause__
         note = f"standard errors: not estimated ({type(exc).__name__}: {exc})"
         return {which: Estimate({}, {}, [note]) for which, _ in chosen}
 
