@@ -273,8 +273,10 @@ def test_a_cancelled_many_sensor_job_ends_promptly_while_others_go_on(two_users)
                  and any("rendering result images 0/6" in n for n in j.notes))
     ended = next(t for t, label, j in seen if label == "mine" and j is not None
                  and j.state == pb.JOB_STATE_CANCELLED)
-    # ... a turn of it inside the end phase, or else no long wait for one (an end phase that
-    # fits in a slice or two may end before bob's next turn, holding him no longer)
+    # ... a turn of it inside the end phase, or else a short end phase and no long wait for
+    # one: the results at 24 px take a slice or two, and the finish's standard errors take at
+    # least a second in one action (engine/jacobian.py's FLOOR_SECONDS), so such a phase may
+    # end before bob's next turn
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and not any(
             t > ended for t, label, j in seen if label == "other" and j is None):
@@ -284,7 +286,8 @@ def test_a_cancelled_many_sensor_job_ends_promptly_while_others_go_on(two_users)
               + [t for t in turns if t > ended][:1])
     gaps = [b - a for a, b in zip(around, around[1:])]
     inside = any(began < t < ended for t in turns)
-    assert inside or (gaps and max(gaps) < 1.0), (gaps, ended - began)
+    short = ended - began < 2.0
+    assert inside or (short and gaps and max(gaps) < ended - began + 1.0), (gaps, ended - began)
     result = alice.jobs.GetJobResult(pb.GetJobResultRequest(name=mine, which=pb.WHICH_BEST))
     assert sorted({i.sensor for i in result.images}) == list(range(6))
     assert len(result.images) == 6 * 4
