@@ -200,10 +200,12 @@ def main(argv: list[str] | None = None) -> int:
                    "into docs/benchmarks.md")
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
                    help="real_scenes, defaults_matrix: also a daemon job per seed with this "
-                   "choice set (e.g. gauss_newton=on), beside the defaults")
+                   "choice set (e.g. gauss_newton=on), beside the defaults; stability: each "
+                   "stiff case again with it")
     p.add_argument("--candidate-only", action="store_true",
-                   help="defaults_matrix: the --with-choice job in place of the defaults, "
-                   "judged as they are (the plain loop at equal time runs for its time)")
+                   help="defaults_matrix, stability: the --with-choice job in place of the "
+                   "defaults, judged as they are (the plain loop at equal time runs for its "
+                   "time)")
     p.add_argument("--first-seed", type=int, default=0,
                    help="real_scenes, defaults_matrix: the first seed run (the others follow it)")
     p.add_argument("--spp", type=int, nargs="+", default=(), metavar="SPP",

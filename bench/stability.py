@@ -2,7 +2,10 @@
 1 and at 2.5, optically thin and thick media, albedo 0.999 coupled to sigma_t, radiance 1e3
 next to a reflectance of 0.5, HDR and very dark references) plus the guards' own cases (an
 all-black reference, learning rates of 1e-5 and 1), each rendered from known values and
-optimized by the daemon with its defaults unless the case says otherwise. References with
+optimized by the daemon with its defaults unless the case says otherwise. With
+``--with-choice NAME=VALUE`` each case runs again with that choice set (``--candidate-only``: only
+so): a candidate default must keep every promise here as well as win the matrix's cells
+(bench/defaults_matrix.py). References with
 NaN/Inf pixels and 1 spp with the dual-buffer loss are tests only (tests/test_api.py,
 tests/test_stability.py): they assert how the loss treats them, which a table would not add to.
 
@@ -16,6 +19,7 @@ here they are tabulated with times.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import common
@@ -58,17 +62,29 @@ def _notes(job) -> str:
     return "; ".join(n for n in job.notes if not n.startswith(skip)) or "-"
 
 
+def _candidate(case: Case, choices: dict[str, str]) -> Case:
+    """The case with ``choices`` set over its own (a candidate default on trial)."""
+    spec = dict(case.spec, choices={**case.spec.get("choices", {}), **choices})
+    return dataclasses.replace(case, name=f"{case.name}, candidate", spec=spec)
+
+
 def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
     cases = stiff.CASES + _guard_cases()
-    rows, table, held = [], [], 0
+    if settings.with_choices:
+        trial = [_candidate(c, settings.with_choices) for c in cases]
+        cases = trial if settings.candidate_only else [
+            c for pair in zip(cases, trial) for c in pair]
+    rows, table, held = [], [], {False: [0, 0], True: [0, 0]}  # candidate? -> [held, run]
     for case in cases:
         try:
             out = stiff.run(server.client, case)
             broken = stiff.verdict(case, out)
         except Exception as exc:  # noqa: BLE001 - a failed case is a row too
             broken, out = [f"{type(exc).__name__}: {exc}"], None
-        held += not broken
+        count = held[case.name.endswith(", candidate")]
+        count[0] += not broken
+        count[1] += 1
         if out is None:
             table.append(f"| {case.name} | - | - | - | - | - | - | FAILED: {broken[0]} |")
             continue
@@ -92,10 +108,12 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                 f"{guards} | {'held' if not broken else 'BROKEN: ' + '; '.join(broken)} |")
         table.append(f"| | *{case.why}* | | | | | {out.seconds:.1f} s | {_notes(out.job)} |")
     csv = common.write_csv(settings.out / "stability.csv", rows)
-    return Result("stability", "Stiff and extreme cases", [
-        Target("cases whose promise held (tolerance, or the diagnosis they must give)",
-               f"{held} of {len(cases)}", held == len(cases)),
-    ], [
+    named = ", ".join(f"{k}={v}" for k, v in settings.with_choices.items())
+    targets = [Target(f"cases whose promise held (tolerance, or the diagnosis they must give)"
+                      + (f", the candidate {named}" if candidate else ""),
+                      f"{n} of {total}", n == total)
+               for candidate, (n, total) in held.items() if total]
+    return Result("stability", "Stiff and extreme cases", targets, [
         "Each case: a small procedural scene (tests/stiff.py) rendered from the truth, the job "
         "started from the start value with the daemon's defaults (16 spp, cosine decay, "
         "the default learning rates unless the case sets one), min error 0. Error: relative "
