@@ -70,21 +70,21 @@ def _candidate(case: Case, choices: dict[str, str]) -> Case:
 
 def run(settings: Settings, server: common.Daemon) -> Result:
     began = time.perf_counter()
-    cases = stiff.CASES + _guard_cases()
+    plain = [(c, False) for c in stiff.CASES + _guard_cases()]
+    cases = plain  # (case, whether it runs the candidate)
     if settings.with_choices:
-        trial = [_candidate(c, settings.with_choices) for c in cases]
+        trial = [(_candidate(c, settings.with_choices), True) for c, _ in plain]
         cases = trial if settings.candidate_only else [
-            c for pair in zip(cases, trial) for c in pair]
+            c for pair in zip(plain, trial) for c in pair]
     rows, table, held = [], [], {False: [0, 0], True: [0, 0]}  # candidate? -> [held, run]
-    for case in cases:
+    for case, candidate in cases:
         try:
             out = stiff.run(server.client, case)
             broken = stiff.verdict(case, out)
         except Exception as exc:  # noqa: BLE001 - a failed case is a row too
             broken, out = [f"{type(exc).__name__}: {exc}"], None
-        count = held[case.name.endswith(", candidate")]
-        count[0] += not broken
-        count[1] += 1
+        held[candidate][0] += not broken
+        held[candidate][1] += 1
         if out is None:
             table.append(f"| {case.name} | - | - | - | - | - | - | FAILED: {broken[0]} |")
             continue

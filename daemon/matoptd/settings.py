@@ -100,8 +100,8 @@ SPECULAR_ALPHA = 0.02
 class Differences:
     """How eta's differences render: their sides at 1/``divisor`` of the job's spp, while
     every width beside the eta shows alpha below ``alpha``."""
-    divisor: int = DIFFERENCE_SPP["quarter"]
-    alpha: float = SPECULAR_ALPHA
+    divisor: int
+    alpha: float
 
 
 def differences(value: str) -> Differences:

@@ -16,9 +16,9 @@ The difference of the losses themselves would also follow the render noise's var
 changes with eta (on a rough principled object it ended at eta 1.45 for a truth of 1.49); I is
 independent of D's samples, as Mitsuba's adjoint pass is of its primal pass. Its cost: two
 primal renders at a quarter of the job's spp per eta and sensor (the choice's value ``full``:
-at the job's spp), only while it is on. Where
-the iterations are frozen, I comes out of the iteration's recording and the two renders replay
-one of their own (engine/frozen.py), eta +- h set outside it on the scene it reads. Once eta
+at the job's spp), only while it is on. Where the iterations are frozen, I comes out of the
+iteration's recording and the two renders replay one of their own (engine/frozen.py), eta +- h
+set outside it on the scene it reads. Once eta
 has settled (settling.py: over the last WINDOW iterations it netted less than SETTLED of the
 steps its rate allowed), the difference is taken, and eta stepped, only every EVERY-th
 iteration; should eta move steadily again, at every one.
