@@ -9,7 +9,8 @@
 #                                  (default /work/thesis), which the repository may not hold.
 #   bench/gpu.sh device OUT [ARGS]  there: installs bench/.gpu/ into a new venv without any
 #                                  index, and runs `bench/run.py --gpu --out OUT/gpu ARGS`.
-#   bench/gpu.sh splice DIR        here: bench/run.py --splice DIR (DIR: what came back of OUT/gpu).
+#   bench/gpu.sh splice DIR        here: bench/run.py --splice on what came back (DIR: OUT, which
+#                                  holds OUT/gpu packed as gpu.tar.gz, or an unpacked OUT/gpu).
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 bundle=$root/bench/.gpu
@@ -72,11 +73,23 @@ device)
   wait
   cd "$root"
   "$python" -c 'import mitsuba, drjit, grpc, matoptd; print("mitsuba", mitsuba.__version__)'
-  "$python" bench/run.py --gpu --out "$out/gpu" --thesis-repo /tmp/matopt-thesis "$@"
+  # The device tool brings back 8 files at most, none below two folders: one archive of the
+  # run, packed even when the run fails or is stopped short of the command's own limit.
+  rc=0
+  timeout "${GPU_SECONDS:-530}" "$python" bench/run.py --gpu --out "$out/gpu" \
+    --thesis-repo /tmp/matopt-thesis "$@" || rc=$?
+  tar -czf "$out/gpu.tar.gz" -C "$out" gpu && rm -rf "$out/gpu"
+  exit $rc
   ;;
 splice)
+  back=${2:?give the folder that came back}
   cd "$root"
-  "$python" bench/run.py --splice "${2:?give the folder that came back}"
+  if [ -f "$back/gpu.tar.gz" ]; then
+    tmp=$(mktemp -d)
+    trap 'rm -rf "$tmp"' EXIT
+    tar -xzf "$back/gpu.tar.gz" -C "$tmp" && back=$tmp/gpu
+  fi
+  "$python" bench/run.py --splice "$back"
   ;;
 *)
   sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
