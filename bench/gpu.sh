@@ -84,6 +84,8 @@ device)
 splice)
   back=${2:?give the folder that came back}
   cd "$root"
+  export PYTHONPATH=$root/proto:$root/clients:$root/daemon
+  [ -z "${PYTHON:-}" ] && [ -x .venv/bin/python ] && python=.venv/bin/python
   if [ -f "$back/gpu.tar.gz" ]; then
     tmp=$(mktemp -d)
     trap 'rm -rf "$tmp"' EXIT
