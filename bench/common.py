@@ -485,9 +485,11 @@ def mib(n: float) -> str:
 
 
 def git_revision() -> str:
-    """The commit the run measured, marked dirty when the daemon's code differs from it; where
-    the tree is a copy without git (a GPU machine), what bench/gpu.sh recorded
-    (MATOPT_BENCH_COMMIT)."""
+    """The commit the run measured, marked dirty when the daemon's code differs from it; on a
+    GPU machine, what bench/gpu.sh recorded (MATOPT_BENCH_COMMIT): the copy of the tree there
+    may come with the git directory of an older commit."""
+    if os.environ.get("MATOPT_BENCH_COMMIT"):  # a copy's git, if any, may be an older one's
+        return os.environ["MATOPT_BENCH_COMMIT"]
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True,
                              capture_output=True, timeout=10).stdout.strip()

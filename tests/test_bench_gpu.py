@@ -67,13 +67,15 @@ def test_splice_refuses_a_folder_that_is_not_a_gpu_run(tmp_path):
 
 
 def test_a_case_past_its_cap_is_stopped_and_reported(tmp_path, monkeypatch):
-    """The child (here a sleeper standing in for run.py) is stopped at its cap, whole."""
+    """The child (here a sleeper standing in for run.py) is stopped at its cap, whole, and
+    the report says how far it got."""
     sleeper = tmp_path / "sleeper.py"
     grandchild = tmp_path / "grandchild.pid"
     sleeper.write_text("import subprocess, sys, time\n"
                        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'],"
                        " start_new_session=True)\n"
                        f"open({str(grandchild)!r}, 'w').write(str(p.pid))\n"
+                       "print('bench: frozen 32x32: 4.8 ms', flush=True)\n"
                        "time.sleep(60)\n")
     monkeypatch.setattr(gpu_run, "__file__", str(sleeper.with_name("gpu_run.py")))
     sleeper.rename(sleeper.with_name("run.py"))
@@ -81,7 +83,9 @@ def test_a_case_past_its_cap_is_stopped_and_reported(tmp_path, monkeypatch):
     began = time.perf_counter()
     result = gpu_run.child("demo", (), args, tmp_path / "demo", 3)
     assert time.perf_counter() - began < 30
-    assert result.targets == [Target("case ran", "FAILED: stopped at its cap of 3 s", False)]
+    # where it was when stopped: its log's last line
+    assert result.targets == [Target("case ran", "FAILED: stopped at its cap of 3 s; its log's "
+                                     "last: bench: frozen 32x32: 4.8 ms", False)]
     pid = int(grandchild.read_text())  # in a session of its own, as matopt demo's daemon
     for _ in range(50):
         if not Path(f"/proc/{pid}").exists() or "Z" in _state(pid):
