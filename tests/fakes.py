@@ -50,10 +50,14 @@ class Clock:
         return 1.8e9 + self.t
 
 
+ESTIMATE_PARTS = 3  # the fake engine's standard errors take this many estimate_part calls
+
+
 @dataclass
 class Run:
     settings: JobSettings
     iteration: int
+    estimated: int = 0  # estimate_part calls so far
 
 
 class FakeEngine:
@@ -101,6 +105,12 @@ class FakeEngine:
     def result_images(self, job: str, sensor: int) -> dict[str, list[api.Image]]:
         image = api.Image(sensor, "optimized", 8, 8, b"exr %d" % sensor, b"png %d" % sensor)
         return {"best": [image], "last": [image]}
+
+    def estimate_part(self, job: str, seconds: float) -> bool:
+        """Standard errors in ``ESTIMATE_PARTS`` pieces, as a long job's end takes them."""
+        run = self.runs[job]
+        run.estimated += 1
+        return run.estimated >= ESTIMATE_PARTS
 
     def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
                render: bool = True) -> api.Finished:

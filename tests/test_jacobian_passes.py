@@ -3,9 +3,12 @@ components share one pass where the render keeps colour channels apart (engine/j
 ``_passes``): each component's column must then be exactly what its own pass gives, and a
 scene that mixes channels must not be packed. Both of a column's estimates come from one pass
 at twice the samples where the integrator allows (engine/split_samples.py): they must be
-independent and unbiased, as two passes of their own are."""
+independent and unbiased, as two passes of their own are. At a job's end the passes run in
+pieces with other jobs' work between them: the same estimate as in one go."""
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 import pytest
@@ -133,11 +136,12 @@ def _glass_and_texture():
                      "type": "bitmap", "filter_type": "nearest", "bitmap": mi.Bitmap(texels)}}}})
 
 
-def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
-    """J's passes frozen (split_samples.Frozen: recorded once per sensor and spp, replayed
-    for each component's tangent and seed) give the unfrozen J^T J, noise and standard
-    errors, for a colour (forward mode, packed), a texture's modes and an eta (differences)."""
-    from matoptd.engine import uncertainty
+def _held(rgb, monkeypatch):
+    """The glass-and-texture scene as a job leaves it for J (Renders.holding: the values
+    assigned), its quantities (a colour, the texture's modes, an eta differenced), a
+    reference and a job of 8 spp; J at the job's spp in one round, whatever the timings, so
+    that two estimates draw the same samples."""
+    from matoptd.engine import parameters
     scene = _glass_and_texture()
     params = mi.traverse(scene)
     integrator = mi.load_dict({"type": "prb", "max_depth": 4})
@@ -151,16 +155,21 @@ def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
         rgb.Quantity("ball.bsdf.eta", np.array([1.5]), True, 1.0, 2.0, difference=True,
                      eta=True)]
     reference = np.array(mi.render(scene, spp=64, seed=4))[..., :3]
-    sensors = {0: rgb.Sensor(reference, None)}
-    job = rgb.Job("mse", 8, 3, False, 100.0)
-    # the scene as a job leaves it for J (Renders.holding): the values assigned
-    from matoptd.engine import parameters
     for q in quantities:
         params[q.key] = parameters.assign(params[q.key], q.value)
     params.update()
-    # the same samples either way: the job's spp and one round, whatever the timings
     monkeypatch.setattr(rgb, "_samples", lambda budget, passes, cost, spp: spp)
     monkeypatch.setattr(rgb, "SIGNAL", 0.0)
+    return (scene, params, integrator, quantities, {0: rgb.Sensor(reference, None)},
+            rgb.Job("mse", 8, 3, False, 100.0))
+
+
+def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
+    """J's passes frozen (split_samples.Frozen: recorded once per sensor and spp, replayed
+    for each component's tangent and seed) give the unfrozen J^T J, noise and standard
+    errors, for a colour (forward mode, packed), a texture's modes and an eta (differences)."""
+    from matoptd.engine import uncertainty
+    scene, params, integrator, quantities, sensors, job = _held(rgb, monkeypatch)
     out = {}
     for freeze in (False, True):
         lin = rgb.linearize(scene, params, integrator, "prb", quantities, sensors, job, freeze)
@@ -181,3 +190,35 @@ def test_frozen_passes_give_the_unfrozen_estimate(rgb, monkeypatch):
     # parameters are back at their values afterwards
     for q in quantities:
         np.testing.assert_allclose(np.array(params[q.key]).ravel(), q.value, rtol=1e-6)
+
+
+def test_an_estimate_in_pieces_with_other_work_between_is_the_estimate_in_one_go(
+        rgb, monkeypatch):
+    """At a job's end J's passes run as turns of the worker: another job renders its own
+    scene between them. The pieces give the J^T J, noise and standard errors of one go, and
+    the pauses between them are not the estimate's time (its budget is of its own)."""
+    from matoptd.engine import uncertainty
+    scene, params, integrator, quantities, sensors, job = _held(rgb, monkeypatch)
+    whole = rgb.linearize(scene, params, integrator, "prb", quantities, sensors, job)
+    other = mi.load_dict(mi.cornell_box())  # another job's scene, rendered between pieces
+    pieces, paused = rgb.linearizing(scene, params, integrator, "prb", quantities, sensors,
+                                     job), 0.0
+    while True:
+        try:
+            next(pieces)
+        except StopIteration as done:
+            parts = done.value
+            break
+        began = time.perf_counter()
+        mi.render(other, spp=4, seed=1)
+        time.sleep(0.1)
+        paused += time.perf_counter() - began
+    assert paused > 0.3  # a pause after each of several passes
+    for name in ("hessian", "noise", "reference", "spread"):
+        a, b = getattr(whole.fit, name), getattr(parts.fit, name)
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5 * np.abs(a).max())
+    a = uncertainty.estimate(whole, quantities, sensors, job, None)
+    b = uncertainty.estimate(parts, quantities, sensors, job, None)
+    for key, e in a.errors.items():
+        np.testing.assert_allclose(b.errors[key].error, e.error, rtol=1e-4)
+    assert parts.seconds < whole.seconds + 0.5 * paused

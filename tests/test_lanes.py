@@ -15,7 +15,7 @@ from matoptd.scheduling.recovery import Recovery
 from matoptd.scheduling.scheduler import Scheduler
 from matoptd.scheduling.state import State
 
-from fakes import KEY, Clock, FakeEngine, FakeWorker, MemoryStore, job
+from fakes import ESTIMATE_PARTS, KEY, Clock, FakeEngine, FakeWorker, MemoryStore, job
 
 WATCHDOG = 120.0
 
@@ -61,8 +61,9 @@ def test_a_job_runs_through_its_lane_to_its_results():
     assert "stopped after all 30 iterations" in done.notes
     best = d.store.results[("jobs/a", "best")]
     assert [i.sensor for i in best.images] == [0, 1]  # one end-phase action per sensor
-    assert [k for k, _ in d.actions if k in ("results", "finish")] == ["results", "results",
-                                                                        "finish"]
+    # one end-phase action per sensor, then the standard errors' pieces, then the finish
+    assert [k for k, _ in d.actions if k in ("results", "estimate", "finish")] == (
+        ["results"] * 2 + ["estimate"] * ESTIMATE_PARTS + ["finish"])
     assert done.ending is None and "jobs/a" not in d.state.scheduler.jobs
 
 

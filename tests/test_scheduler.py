@@ -16,7 +16,8 @@ from matoptd.settings import JobSettings, SceneInput
 
 ITERATION = 0.01                                    # seconds per iteration of every job
 COSTS = {"load": 0.2, "evict": 0.05, "park": 0.05, "cancel": 0.0, "results": 0.3,
-         "finish": 0.1, "task": 0.1}
+         "estimate": 0.25, "finish": 0.1, "task": 0.1}
+ESTIMATES = 6  # "estimate" actions a job's standard errors take in run(): 1.5 s
 
 
 class Clock:
@@ -44,11 +45,14 @@ def make(workers: int = 1, **kw) -> tuple[Scheduler, Clock]:
 
 
 def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | None = None,
-        parts: dict[str, int] | None = None) -> list[Action]:
+        parts: dict[str, int] | None = None, estimates: dict[str, int] | None = None
+        ) -> list[Action]:
     """Runs the workers in turn (one action each, lowest clock first) for ``seconds``.
     ``remaining``: iterations left per job; a job ends when they run out. ``parts``: the
-    sensors whose result images a cancelled job's end phase renders (as the runner says)."""
+    sensors whose result images a cancelled job's end phase renders (as the runner says).
+    ``estimates``: "estimate" actions so far per job (its standard errors take ESTIMATES)."""
     done: list[Action] = []
+    estimates = collections.Counter() if estimates is None else estimates
     free_at = {w: clock.t for w in s.workers}
     end = clock.t + seconds
     while True:
@@ -71,7 +75,8 @@ def run(s: Scheduler, clock: Clock, seconds: float, remaining: dict[str, int] | 
         else:
             clock.t += COSTS[action.kind]
             n = 0
-        s.done(action, iterations=n)
+        estimates[action.job] += action.kind == "estimate"
+        s.done(action, iterations=n, estimated=estimates[action.job] >= ESTIMATES)
         if over:  # as a lane does when a step reports the job done
             s.end(action.job, Phase.SUCCEEDED, "iterations", 0)
         if action.kind == "cancel":
@@ -198,6 +203,12 @@ def test_pause_and_cancel_act_at_the_next_iteration_boundary():
     results = s.next("w0")
     assert (results.kind, results.n) == ("results", 1)
     s.done(results)
+    estimate = s.next("w0")                        # then its standard errors, in pieces
+    assert (estimate.kind, estimate.job) == ("estimate", "a")
+    s.done(estimate)                               # not done: another piece
+    estimate = s.next("w0")
+    assert estimate.kind == "estimate"
+    s.done(estimate, estimated=True)
     finish = s.next("w0")
     assert finish.kind == "finish"
     s.done(finish)
@@ -224,6 +235,9 @@ def test_a_cancel_that_arrives_while_the_job_parks_still_ends_it():
     results = s.next("w0")
     assert (results.kind, results.job) == ("results", "a")
     s.done(results)
+    estimate = s.next("w0")
+    assert (estimate.kind, estimate.job) == ("estimate", "a")
+    s.done(estimate, estimated=True)
     finish = s.next("w0")
     assert (finish.kind, finish.job) == ("finish", "a")
     s.done(finish)
@@ -348,8 +362,9 @@ def test_a_charge_for_work_in_flight_is_refunded_when_it_is_done_or_lost():
 
 
 def test_an_end_phase_shares_the_worker_with_other_users_jobs():
-    """A cancelled job's result images, one sensor per action, take slices like iterations:
-    another user's job goes on stepping between them, and the end phase still completes."""
+    """A cancelled job's result images, one sensor per action, and its standard errors, a
+    piece per action, take slices like iterations: another user's job goes on stepping
+    between them, and the end phase still completes."""
     s, clock = make(slice_seconds=0.5)
     add(s, "a", "alice")
     add(s, "b", "bob")
@@ -365,3 +380,27 @@ def test_an_end_phase_shares_the_worker_with_other_users_jobs():
     between = [k for k in kinds[parts[0]:finish] if k == ("step", "b")]
     assert between, kinds                          # bob's job ran during alice's end phase
     assert [x.n for x in actions if x.kind == "results"] == list(range(8))
+    pieces = [i for i, k in enumerate(kinds) if k == ("estimate", "a")]
+    assert len(pieces) == ESTIMATES and parts[-1] < pieces[0] and pieces[-1] < finish
+    # 1.5 s of standard errors against slices of 0.5 s: bob's turns come between the pieces
+    assert ("step", "b") in kinds[pieces[0]:pieces[-1]], kinds
+
+
+def test_a_job_estimating_its_standard_errors_is_not_evicted_for_another():
+    """One job per worker: another user's job is due while the first estimates its standard
+    errors. Evicted, the first would begin them again (a long job's take up to a minute, so
+    they might never end); the job due loads beside it, and the first still finishes."""
+    s, clock = make(slice_seconds=0.5)
+    add(s, "a", "alice")
+    run(s, clock, 0.6)                             # a loaded and stepping
+    s.cancel("a")
+    estimates: dict[str, int] = collections.Counter()
+    actions = run(s, clock, 0.6, parts={"a": 1}, estimates=estimates)  # results, then these
+    assert ("estimate", "a") in [(x.kind, x.job) for x in actions]
+    add(s, "b", "bob")
+    actions += run(s, clock, 10.0, estimates=estimates)
+    kinds = [(x.kind, x.job) for x in actions]
+    assert ("evict", "a") not in kinds and ("load", "b") in kinds, kinds
+    pieces = [i for i, k in enumerate(kinds) if k == ("estimate", "a")]
+    assert len(pieces) == ESTIMATES and kinds.index(("finish", "a")) > pieces[-1]
+    assert "a" not in s.jobs and s.workers["w0"].resident == ["b"]

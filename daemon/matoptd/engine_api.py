@@ -17,6 +17,7 @@ with the same losses it would have had.
     engine.step(job, n)                          -> Progress     (n iterations, records)
     engine.checkpoint(job)                       -> bytes
     engine.result_images(job, sensor)            -> {which: [Image]} (one sensor's renders)
+    engine.estimate_part(job, seconds)           -> bool         (standard errors, in turns)
     engine.finish(job, history, cancelled, render) -> Finished   (results, diagnosis)
     engine.release(job)                          -> None         (memory freed)
     engine.describe_scene(scene)                 -> SceneDescription
@@ -285,6 +286,11 @@ class Engine(Protocol):
     def result_images(self, job: str, sensor: int) -> dict[str, list[Image]]:
         """One sensor's result images per result ("best", "last"): initial, optimized,
         reference, error. The end phase makes them one sensor per call."""
+
+    def estimate_part(self, job: str, seconds: float) -> bool:
+        """The standard errors of the job's end for about ``seconds``; True once done. The
+        end phase asks until they are, one turn of the worker each; ``finish`` then uses
+        them (without these calls, it estimates them itself)."""
 
     def finish(self, job: str, history: list[IterationRecord], cancelled: bool,
                render: bool = True) -> Finished:

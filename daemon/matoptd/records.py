@@ -78,12 +78,14 @@ class BundleFile:
 @dataclass
 class Ending:
     """A job's end phase: its iterations are over, and it renders its result images one
-    sensor per turn of its worker (``parts`` of them), then finishes as ``outcome``."""
+    sensor per turn of its worker (``parts`` of them), estimates its standard errors over as
+    many turns as they take, then finishes as ``outcome``."""
 
     outcome: Phase  # SUCCEEDED or CANCELLED
     reason: str     # "iterations", "min_error" or "cancelled"
     parts: int
     done: int = 0
+    estimated: bool = False  # the standard errors; a worker lost meanwhile estimates anew
     images: dict[str, list[ImageRef]] = field(default_factory=dict)  # made, per "best"/"last"
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Generator, TypeVar
 
 import drjit as dr
 import mitsuba as mi
@@ -214,29 +215,70 @@ class Linearization:
     notes: list[str] = field(default_factory=list)  # for the job's notes: frozen or why not
 
 
+T = TypeVar("T")
+Pieces = Generator[None, None, T]  # work that yields between its pieces, then returns a T
+
+
+class Clock:
+    """The seconds an estimate in pieces has run, without the pauses between them (other
+    jobs' turns on the worker): its budget is of its own time."""
+
+    def __init__(self) -> None:
+        self.spent, self.since = 0.0, time.perf_counter()
+
+    def __call__(self) -> float:
+        return self.spent + time.perf_counter() - self.since
+
+    def piece(self) -> Pieces[None]:
+        """A piece ends here: the clock stops until the next begins."""
+        self.spent = self()
+        yield
+        self.since = time.perf_counter()
+
+
+def drain(pieces: Pieces[T]) -> T:
+    """Work in pieces done in one go: its value."""
+    while True:
+        try:
+            next(pieces)
+        except StopIteration as done:
+            return done.value
+
+
 def linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
               integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
               job: Job, freeze: bool = False, fixed: bool = False) -> Linearization:
+    """``linearizing`` in one go."""
+    return drain(linearizing(scene, params, integrator, integrator_name, quantities, sensors,
+                             job, freeze, fixed))
+
+
+def linearizing(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
+                integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
+                job: Job, freeze: bool = False, fixed: bool = False,
+                clock: Clock | None = None) -> Pieces[Linearization]:
     """``_linearize`` with its passes frozen (split_samples.Frozen) where ``freeze`` and the
     integrator allows, else unfrozen; a frozen estimate that fails is made again unfrozen,
-    its notes saying why. ``fixed``: as ``_linearize``'s."""
+    its notes saying why. ``fixed``: as ``_linearize``'s. It yields after each pass: the
+    daemon runs other jobs between its pieces."""
+    clock = clock or Clock()
     why = unfrozen(integrator, integrator_name) if freeze else ""
     if not freeze or why:
-        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
-                          fixed=fixed)
+        out = yield from _linearize(scene, params, integrator, integrator_name, quantities,
+                                    sensors, job, clock, fixed=fixed)
         out.notes += [f"standard errors: J's passes not frozen: {why}"] if why else []
         return out
     try:
-        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
-                         split_samples.Frozen(), fixed)
+        out = yield from _linearize(scene, params, integrator, integrator_name, quantities,
+                                    sensors, job, clock, split_samples.Frozen(), fixed)
     except Exception as exc:  # noqa: BLE001 - the unfrozen passes give the same estimate
         while exc.__cause__ is not None:  # Dr.Jit's says "see above": the cause says what
             exc = exc.__cause__
         for q in quantities:  # a pass may have failed with its leaves or sides set
             params[q.key] = parameters.assign(params[q.key], q.value)
         params.update()
-        out = _linearize(scene, params, integrator, integrator_name, quantities, sensors, job,
-                          fixed=fixed)
+        out = yield from _linearize(scene, params, integrator, integrator_name, quantities,
+                                    sensors, job, clock, fixed=fixed)
         out.notes.append(f"standard errors: J's passes not frozen: recording them failed "
                          f"({type(exc).__name__}: {exc})")
     return out
@@ -254,8 +296,8 @@ def unfrozen(integrator: mi.Integrator, integrator_name: str) -> str:
 
 def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integrator,
                integrator_name: str, quantities: list[Quantity], sensors: dict[int, Sensor],
-               job: Job, recorded: split_samples.Frozen | None = None, fixed: bool = False
-               ) -> Linearization:
+               job: Job, clock: Clock, recorded: split_samples.Frozen | None = None,
+               fixed: bool = False) -> Pieces[Linearization]:
     """J, the render noise and the residual at the values ``params`` holds (set by the
     caller to ``quantities``' values), as H, Q and Q_R.
 
@@ -267,7 +309,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
     many a round, while the whole fits in the budget: a derivative image can be far
     noisier than its render (a glass ball's eta at 16 spp: noise ten times the signal), and a
     standard error from a J^T J that noise swamps would be noise too."""
-    began = time.perf_counter()
+    began = clock()
     comps = components(quantities, sensors)
     if len(comps) > MAX_COMPONENTS:
         comps = components(quantities, sensors, smooth=False)
@@ -278,11 +320,11 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
     # frozen pass costs less, which the rounds' own times then show
     renders = {s: [_render(scene, params, integrator, s, job.spp, _draw(job.seed, n))
                    for n in (0, 1)] for s in sensors}
-    full = (time.perf_counter() - began) / (2 * len(sensors))
-    began_one = time.perf_counter()
+    full = (clock() - began) / (2 * len(sensors))
+    began_one = clock()
     if not fixed:
         _render(scene, params, integrator, next(iter(sensors)), 1, _draw(job.seed, 9))
-    one = time.perf_counter() - began_one
+    one = clock() - began_one
     budget = min(max(BUDGET * job.seconds, FLOOR_SECONDS,
                      min(FLOOR * full * len(sensors), FLOOR_SHARE * job.seconds)), BUDGET_CAP)
     split = split_samples.shares_primal(integrator)
@@ -297,7 +339,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
 
     count = len(sensors) * len(_passes([k for k, c in enumerate(comps) if c.key],
                                        comps, by_key, params))
-    spp = job.spp if fixed else _samples(budget / 2 - (time.perf_counter() - began), count,
+    spp = job.spp if fixed else _samples(budget / 2 - (clock() - began), count,
                                          cost, job.spp)
     # columns[sensor][n][k]: estimate n (of two) of component k's column, over samples[k]
     columns = {s: [[None] * len(comps) for _ in (0, 1)] for s in sensors}
@@ -306,7 +348,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
     together = [q for q in quantities if forward_mode(q, integrator_name)]
     draw = 2
     while True:
-        round_began = time.perf_counter()
+        round_began = clock()
         passes = _passes(todo, comps, by_key, params)  # reads the scene: once a round
         for s in sensors:
             seeds = (_draw(job.seed, draw), _draw(job.seed, draw + 1))
@@ -324,6 +366,7 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
                         old = columns[s][n][k]
                         columns[s][n][k] = column if old is None else (
                             (old * samples[k] + column * spp) / (samples[k] + spp))
+                yield from clock.piece()
         samples[todo] += spp
         draw += 2
         fit = linearized([rows(s, sensor, renders[s], columns[s], comps, job, len(sensors))
@@ -333,13 +376,13 @@ def _linearize(scene: mi.Scene, params: mi.SceneParameters, integrator: mi.Integ
         # the next round: 4x the samples for the components short of SIGNAL, at what this
         # round took per pass (a colour's three components are one) scaled by the cost model
         # (small images cost little more at 4x the spp)
-        then = (time.perf_counter() - round_began) * (
+        then = (clock() - round_began) * (
             len(_passes(short, comps, by_key, params)) / len(passes)) * (
             cost(4 * spp) / cost(spp))
-        if fixed or not short or time.perf_counter() - began + then > budget:
+        if fixed or not short or clock() - began + then > budget:
             break
         todo, spp = short, spp * 4
-    return Linearization(comps, fit, time.perf_counter() - began,
+    return Linearization(comps, fit, clock() - began,
                          [] if recorded is None else [
                              f"standard errors: J's passes frozen ({recorded.recordings} "
                              "recordings" + ("" if recorded.inside else "; the tangents "

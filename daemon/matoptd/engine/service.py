@@ -29,6 +29,7 @@ from ..settings import Values, read_values
 from . import (choices, diagnosis, images, parameters, probes, scene as scenes, scene_export,
                uncertainty, verdicts)
 from .integrator import medium_notes
+from .jacobian import Pieces
 from .kept_scenes import KeptScenes, Loaded
 from .optimize import Best, CheckpointError, Optimization, Reference
 
@@ -44,6 +45,8 @@ class Run:
     kinds: dict[str, str]
     max_samples: int = 0  # of one render call (settings.max_samples)
     scene: Loaded | None = None  # the scene as loaded, kept again at release (unless replaced)
+    estimating: Pieces[dict[str, uncertainty.Estimate]] | None = None  # the end's, under way
+    estimated: dict[str, uncertainty.Estimate] | None = None  # ... and done, for ``finish``
 
 
 class MitsubaEngine:
@@ -267,6 +270,31 @@ class MitsubaEngine:
         run = self._run(job)
         return _sensor_images(run, _chosen(run.opt), sensor)
 
+    def estimate_part(self, job: str, seconds: float) -> bool:
+        """The standard errors of the job's end, for about ``seconds`` (one pass of J at the
+        least); True once they are done. A turn of its worker each, so that other jobs run
+        between them: the estimate may take a minute."""
+        run = self._run(job)
+        if run.estimated is None:
+            # As at a load (``start``): a job may load beside this one between its pieces,
+            # and its scene's AD edges stay out of the estimate's forward-mode passes.
+            for other in self.runs.values():
+                if other is not run and not other.opt.parked:
+                    other.opt.park()
+            if run.estimating is None:
+                run.opt.flush()
+                run.estimating = uncertainty.estimating(run.opt, _chosen(run.opt), run.kinds,
+                                                        run.shapes)
+            until = time.perf_counter() + seconds
+            try:
+                while True:
+                    next(run.estimating)
+                    if time.perf_counter() >= until:
+                        break
+            except StopIteration as done:
+                run.estimated, run.estimating = done.value, None
+        return run.estimated is not None
+
     def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
                render: bool = True) -> api.Finished:
         """Results for the best and the last iteration run (none before the first), then the
@@ -276,7 +304,8 @@ class MitsubaEngine:
         opt = run.opt
         results = _results(run, _chosen(opt), render)
         opt.flush()
-        estimates = uncertainty.of_kept(opt, _chosen(opt), run.kinds, run.shapes)
+        estimates = (run.estimated if run.estimated is not None  # estimate_part made them
+                     else uncertainty.of_kept(opt, _chosen(opt), run.kinds, run.shapes))
         shown = estimates.get("best") or estimates.get("last") or uncertainty.Estimate({}, {}, [])
         paths: dict[str, list[list[float]]] = {}
         errors: dict[str, list[float]] = {}
@@ -335,6 +364,8 @@ class MitsubaEngine:
         a cache of its own, which goes back only when asked. Its scene is kept, as loaded,
         for the next job on it: the run goes first, so that none of its buffers stay."""
         run = self.runs.pop(job, None)
+        if run is not None and run.estimating is not None:
+            run.estimating.close()  # its scene held at a kept iteration goes back as it was
         held = run.scene if run is not None else None
         del run
         gc.collect()

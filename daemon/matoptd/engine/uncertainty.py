@@ -12,7 +12,6 @@ to one render (the L2 approximation), which a note says.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,8 +20,9 @@ from .. import engine_api as api
 from ..range_notes import at_bound
 from . import covariance
 from .diagnosis import DECIDER, DECIDERS, Kept, widest
-from .jacobian import (BUDGET, MAX_COMPONENTS, Job, Linearization, Quantity, Sensor, _Component,
-                       _latent_step, basis, linearize, quantity, references)
+from .jacobian import (BUDGET, MAX_COMPONENTS, Clock, Job, Linearization, Pieces, Quantity,
+                       Sensor, _Component, _latent_step, basis, drain, linearizing, quantity,
+                       references)
 from .losses import LOSSES
 from .optimize import Best, Optimization, schedule_factor
 
@@ -236,11 +236,18 @@ def _short(v: np.ndarray) -> list[str]:
 
 def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str],
             shapes: dict[str, list[int]]) -> dict[str, Estimate]:
+    """``estimating`` in one go."""
+    return drain(estimating(opt, chosen, kinds, shapes))
+
+
+def estimating(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str],
+               shapes: dict[str, list[int]]) -> Pieces[dict[str, Estimate]]:
     """Estimates for a job's kept iterations (best, last), read from its Optimization
-    (``kinds`` and ``shapes`` of its parameters); an estimate that fails leaves the results
-    as they are, with a note saying why."""
+    (``kinds`` and ``shapes`` of its parameters), in pieces of one pass of J each: a job's
+    end runs them as turns of its worker, other jobs' iterations between them. An estimate
+    that fails leaves the results as they are, with a note saying why."""
     try:
-        return _of_kept(opt, chosen, kinds, shapes)
+        return (yield from _of_kept(opt, chosen, kinds, shapes))
     except Exception as exc:  # noqa: BLE001 - the job's results stand without them
         while exc.__cause__ is not None:  # Dr.Jit's says "see above": the cause says what
             exc = exc.__cause__
@@ -249,7 +256,7 @@ def of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, 
 
 
 def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str, str],
-             shapes: dict[str, list[int]]) -> dict[str, Estimate]:
+             shapes: dict[str, list[int]]) -> Pieces[dict[str, Estimate]]:
     """The images are linearized at the last iteration, and again at the best only when it
     lies further from it than two difference steps (over which J is taken as constant
     anyway) and the first kept within its share of the time J may take."""
@@ -265,7 +272,7 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
               opt.progress.elapsed / (1 + len(apart)))
     out: dict[str, Estimate] = {}
     linearized: Linearization | None = None
-    began = time.perf_counter()
+    clock = Clock()
     count, reused = 0, ""
     freeze = any(c.name == "frozen" for c in opt.active)  # --choice frozen=off: unfrozen
     notes: list[str] = []
@@ -278,16 +285,15 @@ def _of_kept(opt: Optimization, chosen: list[tuple[str, Best]], kinds: dict[str,
                           "second would pass the time standard errors may take")
             else:
                 with opt.renders.holding(it.values):
-                    linearized = linearize(opt.renders.scene, opt.renders.params,
-                                           opt.renders.integrator,
-                                           opt.integrator_name, quantities, sensors, job,
-                                           freeze)
+                    linearized = yield from linearizing(
+                        opt.renders.scene, opt.renders.params, opt.renders.integrator,
+                        opt.integrator_name, quantities, sensors, job, freeze, clock=clock)
                 count += 1
                 notes += linearized.notes
         adam = _adam(opt, it) if LOSSES[job.loss].least_squares else None
         out[which] = estimate(linearized, quantities, sensors, job, adam)
         out[which].notes[:0] = skipped
-    seconds = time.perf_counter() - began
+    seconds = clock()
     for e in out.values():
         e.seconds = seconds
         if e.names:

@@ -53,9 +53,9 @@ def stop_note(reason: str, job: JobRecord) -> str:
 class Lane:
     """One worker's lane. ``run`` is its thread; ``turn`` is one decision, carried out.
 
-    Just over 300 lines: one method per action kind (load, step, evict, end, finish, task),
-    each a few lines of record-keeping around one engine call; split, they would pass the
-    record and the action back and forth."""
+    Just over 300 lines: one method per action kind (load, step, evict, end, results,
+    estimate, finish, task), each a few lines of record-keeping around one engine call;
+    split, they would pass the record and the action back and forth."""
 
     def __init__(self, state: State, worker: Handle, watchdog: float, recovery: Recovery
                  ) -> None:
@@ -156,11 +156,11 @@ class Lane:
             return 5 * self.watchdog * max(1, job.record.settings.starts)
         return 5 * self.watchdog
 
-    def _done(self, action: Action, iterations: int = 0, record: JobRecord | None = None
-              ) -> None:
+    def _done(self, action: Action, iterations: int = 0, record: JobRecord | None = None,
+              estimated: bool = False) -> None:
         """Tells the scheduler; saves the record it may have changed."""
         with self.state.lock:
-            self.scheduler.done(action, iterations)
+            self.scheduler.done(action, iterations, estimated)
             if record is not None:
                 self.state.save(record)
             self.state.wake.notify_all()
@@ -183,7 +183,7 @@ class Lane:
             return
         act = {"load": self._load, "step": self._step, "evict": self._evict,
                "park": self._park, "cancel": self._cancel, "results": self._results,
-               "finish": self._finish}[action.kind]
+               "estimate": self._estimate, "finish": self._finish}[action.kind]
         try:
             act(engine, record, action)
         except DiskFull:
@@ -327,6 +327,11 @@ class Lane:
             for which, images in kept.items():
                 record.ending.images.setdefault(which, []).extend(images)
         self._done(action, record=record)
+
+    def _estimate(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
+        """A step's time of the job's standard errors (the engine keeps what it has)."""
+        estimated = engine.estimate_part(record.name, self.scheduler.step_seconds)
+        self._done(action, record=record, estimated=estimated)
 
     def _finish(self, engine: EngineClient, record: JobRecord, action: Action) -> None:
         ending, cancelled = record.ending, record.ending.outcome is Phase.CANCELLED

@@ -21,7 +21,8 @@ log = logging.getLogger("matoptd.recovery")
 RESTART_DELAYS_S = (0.0, 1.0, 5.0, 30.0)  # between failed restarts of a worker
 DOING = {"load": "loading the job", "evict": "saving the job's checkpoint",
          "park": "pausing the job", "cancel": "stopping the job",
-         "results": "rendering the job's result images", "finish": "making the job's results",
+         "results": "rendering the job's result images",
+         "estimate": "estimating the job's standard errors", "finish": "making the job's results",
          "task": "a task"}
 WAITING = ("waiting: no renderer worker is available (every worker's machine has left, or "
            "none has joined yet); the job runs when one joins")

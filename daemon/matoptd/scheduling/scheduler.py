@@ -19,8 +19,10 @@ Decisions, in order, for a free worker:
 2. a scene task (load, render, reference check): short, and a user is waiting on each;
 3. the job whose slice is running, until ``slice_seconds`` have passed while others wait;
    a job in its end phase (its iterations are over, or it was cancelled) makes its result
-   images one sensor per action ("results"), then ends ("finish"): other jobs get their
-   slices between, so an end phase of many sensors does not hold a worker for minutes;
+   images one sensor per action ("results"), estimates its standard errors a step's time per
+   action ("estimate"), then ends ("finish"): other jobs get their slices between, so an end
+   phase of many sensors, or of a long job's estimate (up to a minute), does not hold a
+   worker for minutes;
 4. else the next job by fair share *per user*: the user with the least device time so far
    (a user with ten jobs gets no more than a user with one), then that user's least-served
    job. A user who was idle comes back at the least busy active user's account, not with
@@ -32,7 +34,9 @@ release, done by its lane) before another loads: every scene a process holds mak
 job's kernels bigger, since Mitsuba dispatches a BSDF's or emitter's virtual call over every
 live instance (an iteration of a 64 px Cornell box took 2.4x as long with four other such
 scenes alive in the process). Switches are what slices pay for, so a slice is long against a
-switch and short against a user's patience (bench/switching.py measures both).
+switch and short against a user's patience (bench/switching.py measures both). A job whose
+standard errors are under way is not evicted (it would begin them again): the job due loads
+beside it, one more for that while.
 
 ``Scheduler`` is over 300 lines: the transitions and the decisions read the same few fields,
 and splitting them would put one state machine's rules in two places.
@@ -61,8 +65,8 @@ class Action:
     """What a worker does next. ``kind``: "task", "load", "step" (``n`` iterations), "evict"
     (checkpoint, release; the job waits for its next slice), "park" (checkpoint, release;
     the job is paused), "cancel" (the iterations stop: the end phase begins), "results"
-    (the result images of the job's ``n``-th rendered sensor), "finish" (the rest of the
-    results, release; the job ends)."""
+    (the result images of the job's ``n``-th rendered sensor), "estimate" (a piece of its
+    standard errors), "finish" (the rest of the results, release; the job ends)."""
 
     kind: str
     worker: str
@@ -252,7 +256,8 @@ class Scheduler:
 
     def end(self, name: str, outcome: Phase, reason: str, parts: int) -> None:
         """The job's iterations are over (it ran them all, or a cancel stopped them), whatever
-        was asked of it meanwhile: its end phase is ``parts`` "results" actions and a
+        was asked of it meanwhile: its end phase is ``parts`` "results" actions, "estimate"
+        actions until the standard errors are done (none without a result: ``parts`` 0) and a
         "finish", after which it is ``outcome``."""
         job = self.jobs[name]
         job.record.phase = Phase.ENDING
@@ -328,17 +333,21 @@ class Scheduler:
                 w.current, w.slice_start = job.name, self.clock()  # a new slice
             ending = job.record.ending
             if job.phase is Phase.ENDING and ending is not None:
-                return self._begin(w, Action("results", worker, job.name, n=ending.done)
-                                   if ending.done < ending.parts
-                                   else Action("finish", worker, job.name))
+                kind = ("results" if ending.done < ending.parts else
+                        "estimate" if ending.parts and not ending.estimated else "finish")
+                return self._begin(w, Action(kind, worker, job.name, n=ending.done))
             return self._begin(w, Action("step", worker, job.name, n=self._iterations(job, w)))
-        if len(w.resident) >= self.max_resident:
-            return self._begin(w, Action("evict", worker, w.resident[0]))
+        # A job estimating its standard errors stays: evicted, it would begin them again.
+        # The job due loads beside it (the worker holds one more for that while).
+        evictable = [n for n in w.resident if not _estimating(self.jobs[n])]
+        if len(w.resident) >= self.max_resident and evictable:
+            return self._begin(w, Action("evict", worker, evictable[0]))
         return self._begin(w, Action("load", worker, job.name))
 
-    def done(self, action: Action, iterations: int = 0) -> None:
-        """The action completed (a "finish" ends its job). Its time goes to the job's
-        user; a job removed meanwhile (failed, deleted) only frees the worker."""
+    def done(self, action: Action, iterations: int = 0, estimated: bool = False) -> None:
+        """The action completed (a "finish" ends its job; an "estimate" says whether the
+        standard errors are ``estimated``). Its time goes to the job's user; a job removed
+        meanwhile (failed, deleted) only frees the worker."""
         w = self.workers[action.worker]
         w.action = None
         seconds = self.clock() - action.began
@@ -377,6 +386,8 @@ class Scheduler:
                 job.record.phase = Phase.PAUSED  # (a cancel that came meanwhile still stands)
         elif action.kind == "results" and job.record.ending is not None:
             job.record.ending.done += 1
+        elif action.kind == "estimate" and job.record.ending is not None:
+            job.record.ending.estimated = estimated
         elif action.kind == "finish":
             self.finish(job.name)
 
@@ -478,3 +489,10 @@ class Scheduler:
             left = self.slice_seconds - (self.clock() - w.slice_start)
             budget = min(budget, max(left, job.per_iteration))
         return max(1, min(MAX_STEP, int(budget / job.per_iteration)))
+
+
+def _estimating(job: Job) -> bool:
+    """Whether the job's end phase is on its standard errors (its result images made)."""
+    e = job.record.ending
+    return (job.phase is Phase.ENDING and e is not None and e.parts > 0
+            and e.done >= e.parts and not e.estimated)

@@ -163,7 +163,12 @@ def end_phase(job: JobRecord) -> str | None:
         return None
     ended = (f"cancelled at iteration {job.iteration}" if e.outcome is Phase.CANCELLED
              else f"iterations over ({e.reason})")
-    return f"{ended}: rendering result images {e.done}/{e.parts}" if e.parts else ended
+    if not e.parts:
+        return ended
+    if e.done < e.parts:
+        return f"{ended}: rendering result images {e.done}/{e.parts}"
+    return (f"{ended}: result images rendered ({e.parts}); "
+            + ("making its results" if e.estimated else "estimating standard errors"))
 
 
 def job_to_pb(job: JobRecord) -> pb.Job:

@@ -50,6 +50,9 @@ class EngineClient(api.Engine):
     def result_images(self, job: str, sensor: int) -> dict[str, list[api.Image]]:
         return self._call("result_images", job, sensor)
 
+    def estimate_part(self, job: str, seconds: float) -> bool:
+        return self._call("estimate_part", job, seconds)
+
     def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
                render: bool = True) -> api.Finished:
         return self._call("finish", job, history, cancelled, render)
