@@ -404,3 +404,25 @@ def test_a_job_estimating_its_standard_errors_is_not_evicted_for_another():
     pieces = [i for i, k in enumerate(kinds) if k == ("estimate", "a")]
     assert len(pieces) == ESTIMATES and kinds.index(("finish", "a")) > pieces[-1]
     assert "a" not in s.jobs and s.workers["w0"].resident == ["b"]
+
+
+def test_standard_errors_lost_with_their_worker_are_estimated_again():
+    """The engine keeps a finished estimate for the job's finish; a worker lost between them
+    takes it along, so the job, loaded again, estimates anew before it finishes (its finish
+    would otherwise estimate them in one action)."""
+    s, clock = make()
+    add(s, "a", "alice")
+    s.done(s.next("w0"))                           # loaded
+    s.cancel("a")
+    s.done(s.next("w0"))                           # cancel: the end phase begins
+    s.end("a", Phase.CANCELLED, "cancelled", 1)
+    s.done(s.next("w0"))                           # results
+    estimate = s.next("w0")
+    s.done(estimate, estimated=True)
+    assert s.next("w0").kind == "finish"
+    s.worker_lost("w0", "died")                    # in the finish: the run is gone
+    s.worker_ready("w0")
+    load = s.next("w0")
+    assert (load.kind, load.job) == ("load", "a")
+    s.done(load)
+    assert s.next("w0").kind == "estimate"

@@ -375,6 +375,8 @@ class Scheduler:
             job.worker = w.name
             w.resident.append(job.name)
             w.current, w.slice_start = job.name, None
+            if job.record.ending is not None:  # a run of its own: its standard errors anew
+                job.record.ending.estimated = False
             if job.phase is Phase.QUEUED:
                 job.record.phase = Phase.RUNNING
                 if self.observer is not None:
