@@ -93,6 +93,7 @@ class Table:
     plain_max: dict[str, float] = field(default_factory=dict)
     with_depth_64: bool = False      # also run with max_depth 64 set on the scene
     depth: int = -1                  # the scene file's own max_depth (-1: unbounded)
+    gate: float = 0.02               # how close ``targets`` must end and stay (defaults_matrix)
 
 
 B, M = "object_bsdf", "medium1"
@@ -104,7 +105,7 @@ TABLES = [
           {f"{B}.roughness.value": [0.5], f"{B}.base_color.value": [0.1] * 3,
            f"{B}.spec_trans.value": [0.02], f"{B}.eta": [1.54]},
           (f"{B}.base_color.value", f"{B}.spec_trans.value", f"{B}.eta"), plain_spp=16,
-          with_depth_64=True),
+          with_depth_64=True, gate=0.01),
     Table("table4", "scenes/material-preview/translucent-participating-media/"
           "scene-homogeneuous-bunny.xml", "prbvolpath",
           {f"{B}.alpha.value": [0.01], f"{M}.albedo.value.value": BLUE,
