@@ -484,6 +484,11 @@ def mib(n: float) -> str:
     return f"{n / 2**20:.1f} MiB"
 
 
+
+class Stopped(Exception):
+    """The case was told to stop (SIGTERM: its time cap in bench/gpu_run.py). A case that
+    catches it reports what it finished; elsewhere it is a failed case, as any error."""
+
 def git_revision() -> str:
     """The commit the run measured, marked dirty when the daemon's code differs from it; on a
     GPU machine, what bench/gpu.sh recorded (MATOPT_BENCH_COMMIT): the copy of the tree there

@@ -89,6 +89,7 @@ def child(name: str, extra: tuple[str, ...], args, out: Path, cap: float) -> Res
     if name == "real_scenes":
         command += ["--deadline", f"{time.time() + cap - GRACE:.0f}"]
         command += [*(["--seeds", str(args.seeds)] if args.seeds else []),
+                    *(["--tables", *args.tables] if args.tables else []),
                     *(["--film", args.film] if args.film else []),
                     *(["--iterations", str(args.iterations)] if args.iterations else [])]
     began = time.perf_counter()

@@ -301,12 +301,13 @@ def has_choices() -> bool:
 # -- the runs ---------------------------------------------------------------------------------
 
 def measure(table: Table, p: Plan, settings: Settings, server: common.Daemon,
-            deadline: float = 0.0) -> list[Run]:
-    """The table's runs; with a ``deadline`` (epoch seconds), a seed after the first only
-    when the time it took fits before it."""
+            deadline: float = 0.0, runs: list[Run] | None = None) -> list[Run]:
+    """The table's runs, appended to ``runs`` as they end (what finished before a stop);
+    with a ``deadline`` (epoch seconds), a seed after the first only when the time it took
+    fits before it."""
     client, variant = server.client, server.variant
     prep = prepare(client, table, p, settings)
-    runs: list[Run] = []
+    runs = [] if runs is None else runs
     # Kernels compiled for both sides before anything is timed.
     run_plain(prep, p, 99, variant, WARM_UP)
     run_daemon(server, prep, "warm-up", daemon_spec(prep, 99, WARM_UP))
@@ -512,8 +513,18 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         if settings.deadline and settings.deadline - time.time() < per_seed:
             result.targets.append(Target(f"{table.name}: ran", "skipped: the time cap", None))
             continue
+        runs: list[Run] = []
         try:
-            runs = measure(table, p, settings, server, deadline)
+            measure(table, p, settings, server, deadline, runs)
+            stopped = False
+        except common.Stopped:  # the cap came first: the seeds that ended still count
+            stopped = True
+            ended = {r.seed for r in runs if r.method == EQUAL_TIME}
+            runs = [r for r in runs if r.seed in ended]
+            result.targets.append(Target(f"{table.name}: stopped", f"at the time cap, "
+                                         f"{len(ended)} seed(s) ended before it", None))
+            if not runs:
+                break
         except Exception as exc:  # noqa: BLE001 - a failed table is a figure too
             result.targets.append(Target(f"{table.name}: ran",
                                          f"FAILED: {type(exc).__name__}: {exc}", False))
@@ -521,7 +532,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
         result.targets += targets(table, p, runs)
         ran = len({r.seed for r in runs if r.method == "daemon"})
         per_seed = max(per_seed, (time.perf_counter() - began) / max(1, ran))
-        if ran < p.seeds:
+        if ran < p.seeds and not stopped:
             result.targets.append(Target(f"{table.name}: seeds", f"{ran} of {p.seeds}: the "
                                          "next would not have fit the time cap", None))
         result.lines += ["", f"**{table.name}** (`{table.path}`, integrator "
@@ -539,6 +550,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                          **{f"final:{_short(k)}": v for k, v in r.final.items()},
                          **{f"value:{_short(k)}": " ".join(f"{x:.4g}" for x in v)
                             for k, v in r.values.items()}})
+        if stopped:
+            break
     if rows:
         result.files.append(common.write_csv(settings.out / "real_scenes.csv", rows))
     return result

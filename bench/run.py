@@ -25,6 +25,7 @@ import importlib
 import os
 import platform
 import shutil
+import signal
 import sys
 import tempfile
 import time
@@ -93,6 +94,10 @@ def clear(out: Path) -> None:
     for f in [*out.glob("*.csv"), *out.glob("*.png"), out / "summary.md"]:
         f.unlink(missing_ok=True)
     shutil.rmtree(out / "quality", ignore_errors=True)
+
+
+def _stopped(signum, frame) -> None:
+    raise common.Stopped("stopped at its time cap")
 
 
 def _mark(met: bool | None) -> str:
@@ -233,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                         tuple(args.spp), tuple(args.depth),
                         args.tutorials_repo.resolve() if args.tutorials_repo else None,
                         args.candidate_only)
+    if args.result_json:  # a case of --gpu, stopped at its cap with SIGTERM: say what finished
+        signal.signal(signal.SIGTERM, _stopped)
     began = time.perf_counter()
     load_before = os.getloadavg()[0]
     results, info = [], None

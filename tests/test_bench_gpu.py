@@ -99,3 +99,33 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "Z"
+
+
+def test_real_scenes_stopped_at_its_cap_reports_the_seeds_that_ended(tmp_path, monkeypatch):
+    """The cap's SIGTERM (common.Stopped) in the middle of a table's second seed: the first
+    seed's figures are reported, the unfinished seed is left out, and no table begins."""
+    import real_scenes as rs
+    from common import Settings, Stopped
+
+    table2 = rs.TABLES[0]
+
+    def run(method: str, seed: int, error: float) -> rs.Run:
+        return rs.Run(table2.name, method, seed, 0.3, [0.0, 1.0],
+                      [{k: 0.5 for k in table2.truth}, {k: error for k in table2.truth}],
+                      2, {}, 0.3)
+
+    def measure(table, p, settings, server, deadline=0.0, runs=None):
+        assert table is table2  # table4 is never begun
+        runs += [run("plain", 0, 0.04), run("daemon", 0, 0.005), run(rs.EQUAL_TIME, 0, 0.03),
+                 run("plain", 1, 0.04)]
+        raise Stopped("stopped at its time cap")
+
+    monkeypatch.setattr(rs, "measure", measure)
+    settings = Settings(tmp_path, False, tmp_path, thesis_repo=tmp_path)
+    result = rs.run(settings, SimpleNamespace(variant="cuda_ad_rgb"))
+    figures = {t.what: t.figure for t in result.targets}
+    assert figures["table2: stopped"] == "at the time cap, 1 seed(s) ended before it"
+    assert not any(w.startswith("table4") for w in figures), figures
+    assert any(w.startswith("GPU table2") for w in figures), figures  # seed 0's figure
+    rows = (tmp_path / "real_scenes.csv").read_text().splitlines()
+    assert len(rows) == 1 + 3  # the header and seed 0's three runs; seed 1's plain left out
