@@ -88,6 +88,14 @@ class Ending:
     estimated: bool = False  # the standard errors; a worker lost meanwhile estimates anew
     images: dict[str, list[ImageRef]] = field(default_factory=dict)  # made, per "best"/"last"
 
+    @property
+    def next(self) -> str:
+        """What the end phase does next: "results", "estimate" or "finish" (no estimate
+        without a result: ``parts`` 0)."""
+        if self.done < self.parts:
+            return "results"
+        return "estimate" if self.parts and not self.estimated else "finish"
+
 
 @dataclass
 class JobRecord:

@@ -180,8 +180,7 @@ class MitsubaEngine:
         job's kernels bigger, and a scene loaded beside it gets other instance ids, which
         the kernel cache sees as other kernels."""
         self._preview = None
-        for run in self.runs.values():  # their scenes' AD edges out of this run's passes
-            run.opt.park()
+        self._park_others()
         began = time.perf_counter()
         keys = [p.key for p in settings.parameters]
         key = (settings.scene.key, tuple(keys))
@@ -276,11 +275,7 @@ class MitsubaEngine:
         between them: the estimate may take a minute."""
         run = self._run(job)
         if run.estimated is None:
-            # As at a load (``start``): a job may load beside this one between its pieces,
-            # and its scene's AD edges stay out of the estimate's forward-mode passes.
-            for other in self.runs.values():
-                if other is not run and not other.opt.parked:
-                    other.opt.park()
+            self._park_others(run)  # a job may have loaded beside it since its last piece
             if run.estimating is None:
                 run.opt.flush()
                 run.estimating = uncertainty.estimating(run.opt, _chosen(run.opt), run.kinds,
@@ -294,6 +289,13 @@ class MitsubaEngine:
             except StopIteration as done:
                 run.estimated, run.estimating = done.value, None
         return run.estimated is not None
+
+    def _park_others(self, run: Run | None = None) -> None:
+        """Every run but ``run`` parked (Optimization.park): their scenes' AD edges out of the
+        forward-mode passes of a run loading or estimating beside them."""
+        for other in self.runs.values():
+            if other is not run and not other.opt.parked:
+                other.opt.park()
 
     def finish(self, job: str, history: list[api.IterationRecord], cancelled: bool,
                render: bool = True) -> api.Finished:

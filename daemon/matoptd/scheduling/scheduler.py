@@ -333,9 +333,7 @@ class Scheduler:
                 w.current, w.slice_start = job.name, self.clock()  # a new slice
             ending = job.record.ending
             if job.phase is Phase.ENDING and ending is not None:
-                kind = ("results" if ending.done < ending.parts else
-                        "estimate" if ending.parts and not ending.estimated else "finish")
-                return self._begin(w, Action(kind, worker, job.name, n=ending.done))
+                return self._begin(w, Action(ending.next, worker, job.name, n=ending.done))
             return self._begin(w, Action("step", worker, job.name, n=self._iterations(job, w)))
         # A job estimating its standard errors stays: evicted, it would begin them again.
         # The job due loads beside it (the worker holds one more for that while).
@@ -496,5 +494,4 @@ class Scheduler:
 def _estimating(job: Job) -> bool:
     """Whether the job's end phase is on its standard errors (its result images made)."""
     e = job.record.ending
-    return (job.phase is Phase.ENDING and e is not None and e.parts > 0
-            and e.done >= e.parts and not e.estimated)
+    return job.phase is Phase.ENDING and e is not None and e.next == "estimate"

@@ -165,10 +165,10 @@ def end_phase(job: JobRecord) -> str | None:
              else f"iterations over ({e.reason})")
     if not e.parts:
         return ended
-    if e.done < e.parts:
+    if e.next == "results":
         return f"{ended}: rendering result images {e.done}/{e.parts}"
     return (f"{ended}: result images rendered ({e.parts}); "
-            + ("making its results" if e.estimated else "estimating standard errors"))
+            + ("estimating standard errors" if e.next == "estimate" else "making its results"))
 
 
 def job_to_pb(job: JobRecord) -> pb.Job:
