@@ -134,9 +134,9 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
               "errors, as the job's notes time them) and the rest (result images at 64 spp). "
               "Equal work: the plain loop's own steps (the plain preset) frozen, their "
               "iterations alone."]
-    tables = [t for t in real_scenes.TABLES if not server.cuda or t.name in GPU_TABLES]
-    for table in tables:
-        for width, height in GPU_SIZES if server.cuda and not settings.quick else THESIS_SIZES:
+    gpu = server.cuda and not settings.quick  # --quick: the CPU's cells, smaller
+    for table in [t for t in real_scenes.TABLES if not gpu or t.name in GPU_TABLES]:
+        for width, height in GPU_SIZES if gpu else THESIS_SIZES:
             size = f"{width}x{height}"
             p = real_scenes.Plan((width, height), iterations, 1, False, server.cuda)
             prep = real_scenes.prepare(server.client, table, p, settings)
