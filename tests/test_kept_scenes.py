@@ -287,3 +287,37 @@ def test_a_job_whose_last_iteration_was_its_best_renders_that_result_once(make):
     last = {i.role: i for i in images["last"]}
     assert best["optimized"].exr == last["optimized"].exr
     assert best["initial"].exr == last["initial"].exr
+
+
+def test_a_paused_jobs_estimate_in_pieces_goes_on_after_its_run_is_lost(make):
+    """A paused job's standard errors on request come in pieces, each a call on the worker
+    that holds the estimate's run; a worker restarted between two pieces holds it no more,
+    and the next piece loads it again from the checkpoint and finishes: the user still gets
+    every standard error. The last piece lets the run go."""
+    engine, settings = make
+    engine.start("a", settings(), None)
+    for _ in range(20):
+        engine.step("a", 1)
+    checkpoint = engine.checkpoint("a")
+    engine.release("a")
+
+    def ask(run: str, lose_after: int = -1):
+        pieces = 0
+        while True:
+            out = engine.estimate(run, settings(), checkpoint, "last", 0.01)
+            pieces += 1
+            if out is not None:
+                return out, pieces
+            if pieces == lose_after:
+                engine.release(run)  # what a restart leaves: no run of that name
+
+    whole, pieces = ask("a#estimate-1")
+    assert pieces > 2 and "a#estimate-1" not in engine.runs
+    again, _ = ask("a#estimate-2", lose_after=1)
+    assert "a#estimate-2" not in engine.runs
+    for key in (RED, GREEN):
+        e, f = whole.errors[key], again.errors[key]
+        assert len(f.reading) == 3 and f.reading == e.reading, (e, f)
+        assert "not_determined" not in f.reading and np.all(np.isfinite(f.error)), f
+        # as uninterrupted, up to J's noise (the spp its passes get follows their time)
+        assert np.all((f.error > e.error / 3) & (f.error < 3 * e.error)), (e.error, f.error)

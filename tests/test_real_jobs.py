@@ -256,6 +256,50 @@ def test_a_glass_job_loaded_beside_a_job_estimating_its_standard_errors(two_user
     wait_state(bob, other.name, (pb.JOB_STATE_CANCELLED,), 300)
 
 
+def test_a_paused_jobs_estimate_on_request_takes_turns_with_another_users_job(two_users):
+    """Alice asks for her paused job's standard errors (a second at the least): the estimate
+    runs in pieces on one worker, and bob's job, on the same worker, steps between them
+    rather than waiting for the whole; alice's standard errors come whole."""
+    daemon, users = two_users
+    alice, bob = users["alice"], users["bob"]
+    box = alice.scenes.CreateScene(pb.CreateSceneRequest(overrides={"resx": "24", "resy": "24"}))
+    box_ref = alice.scenes.RenderScene(pb.RenderSceneRequest(name=box.name, spp=64)).images[0]
+    mine = alice.jobs.CreateJob(pb.CreateJobRequest(spec=pb.JobSpec(
+        scene=box.name, references=[pb.Reference(blob=box_ref.exr_blob)], iterations=100_000,
+        spp=4, parameters=[pb.ParameterSpec(key=k, initial_value=[0.5] * 3)
+                           for k in ("red.reflectance.value", "green.reflectance.value")])))
+    wait_iteration(alice, mine.name, 20)
+    alice.jobs.PauseJob(pb.PauseJobRequest(name=mine.name))
+    wait_state(alice, mine.name, (pb.JOB_STATE_PAUSED,))
+    other = long_job(bob, 1)
+    wait_iteration(bob, other, 3)
+    stepped: list[float] = []
+
+    def follow() -> None:
+        with contextlib.suppress(grpc.RpcError):  # the stream ends with the test
+            for event in bob.jobs.WatchJob(pb.WatchJobRequest(name=other)):
+                if not event.HasField("job"):
+                    stepped.append(time.monotonic())
+
+    threading.Thread(target=follow, daemon=True).start()
+    time.sleep(0.5)
+    asked = time.monotonic()
+    result = alice.jobs.GetJobResult(pb.GetJobResultRequest(
+        name=mine.name, which=pb.WHICH_LAST, estimate_standard_errors=True))
+    answered = time.monotonic()
+    for p in result.parameters:
+        assert len(p.standard_error) == 3 and pb.INTERVAL_NOT_DETERMINED not in p.interval, \
+            result.standard_error_notes
+    # Whole, bob's step in flight when alice asked would end its first half-second and he
+    # would wait for the rest; in pieces he steps in the second half too.
+    assert answered - asked > 1.0, answered - asked
+    middle = asked + (answered - asked) / 2
+    assert any(middle < t < answered for t in stepped), (asked, answered, stepped)
+    bob.jobs.CancelJob(pb.CancelJobRequest(name=other))
+    alice.jobs.CancelJob(pb.CancelJobRequest(name=mine.name))
+    wait_state(bob, other, (pb.JOB_STATE_CANCELLED,), 300)
+
+
 def long_job(stubs, sensors: int, resolution: int = 0) -> str:
     files = {"ring.xml": ring_of_cameras(sensors, 32).encode()}
     scene = create_scene(stubs, files, "ring.xml")

@@ -322,6 +322,43 @@ def test_tasks_go_before_iterations():
     assert s.next("w0").kind == "step"
 
 
+
+def test_a_task_in_pieces_takes_turns_with_a_job_on_the_worker_that_holds_it():
+    """A paused job's standard errors on request (up to a minute) come as pieces for the
+    worker that holds their run: each after a turn of the job running there, never on
+    another worker, and back to back once no job wants the worker."""
+    s, clock = make(workers=2)
+    add(s, "a", "alice")
+    s.done(s.next("w0"))                                     # a loads on w0
+    s.add_task("the estimate's first piece")                 # any worker's: w0 asks first
+    first = s.next("w0")
+    assert (first.kind, first.task) == ("task", "the estimate's first piece")
+    s.done(first)
+    kinds = []
+    for n in range(3):                                       # each piece queued when the last
+        s.add_task(f"piece {n}", worker="w0")                # returned, as a request does
+        assert s.next("w1") is None                          # not for the other worker
+        for _ in range(2):
+            action = s.next("w0")
+            kinds.append(action.kind)
+            clock.t += COSTS.get(action.kind, ITERATION)
+            s.done(action, iterations=1)
+    assert kinds == ["step", "task"] * 3                     # alice's turn, then a piece
+    s.pause("a")
+    s.done(s.next("w0"))                                     # parked: nothing else wants w0
+    s.add_task("piece 3", worker="w0")
+    s.done(s.next("w0"))
+    s.add_task("piece 4", worker="w0")
+    assert s.next("w0").task == "piece 4"                    # back to back
+
+
+def test_a_removed_workers_pieces_go_to_any_worker():
+    s, _ = make(workers=2)
+    s.add_task("piece", worker="w1")
+    s.worker_lost("w1")
+    s.remove_worker("w1")
+    assert s.next("w0").task == "piece"                      # which says it holds no run
+
 @pytest.mark.parametrize("per_iteration,expected", [(0.001, 250), (0.1, 2), (1.0, 1)])
 def test_a_step_call_lasts_about_a_quarter_second(per_iteration, expected):
     s, clock = make()

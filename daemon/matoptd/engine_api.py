@@ -19,6 +19,7 @@ with the same losses it would have had.
     engine.result_images(job, sensor)            -> {which: [Image]} (one sensor's renders)
     engine.estimate_part(job, seconds)           -> bool         (standard errors, in turns)
     engine.finish(job, history, cancelled, render) -> Finished   (results, diagnosis)
+    engine.estimate(run, settings, checkpoint, which, seconds) -> Estimated | None (in turns)
     engine.release(job)                          -> None         (memory freed)
     engine.describe_scene(scene)                 -> SceneDescription
     engine.render(scene, request)                -> list[Image]
@@ -298,10 +299,13 @@ class Engine(Protocol):
         and its diagnosis, from its history as the daemon recorded it. Without ``render``,
         no per-sensor images (``result_images`` made them)."""
 
-    def estimate(self, job: str, settings: JobSettings, checkpoint: bytes, which: str
-                 ) -> Estimated:
+    def estimate(self, run: str, settings: JobSettings, checkpoint: bytes, which: str,
+                 seconds: float) -> Estimated | None:
         """Standard errors of a paused job's kept iteration ("best" or "last"), from its
-        checkpoint; nothing of the job stays loaded."""
+        checkpoint, for about ``seconds`` a call: None until they are done. The daemon asks
+        until they are, one turn of the worker each (the same worker: it holds the ``run``,
+        loaded by the first call, or again by a call that finds it gone, and released by
+        the last)."""
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""

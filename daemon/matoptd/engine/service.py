@@ -340,23 +340,31 @@ class MitsubaEngine:
             r.standard_errors, r.gain_errors = final.errors, final.gains
         return api.Finished(results, said.notes + opt.said, _counters(opt))
 
-    def estimate(self, job: str, settings: api.JobSettings, checkpoint: bytes, which: str
-                 ) -> api.Estimated:
+    def estimate(self, run: str, settings: api.JobSettings, checkpoint: bytes, which: str,
+                 seconds: float) -> api.Estimated | None:
         """Standard errors of a paused job's kept iteration ("best" or "last"), as its end
-        would estimate them: the job is loaded from its checkpoint under a name of its own
-        (so that a resume meanwhile loads it apart), estimated and released. The checkpoint
-        holds no gradient records: the noise is the model's and no distance to go is added."""
-        run = f"{job}#estimate"
-        self.start(run, settings, checkpoint)
+        would estimate them, for about ``seconds`` (one pass of J at the least); None until
+        they are done. The job is loaded from its checkpoint as ``run``, a name of its own
+        (a resume meanwhile loads the job apart), by the first call or by one that finds it
+        gone (its worker restarted), and released when they are done. The checkpoint holds
+        no gradient records: the noise is the model's and no distance to go is added."""
+        if run not in self.runs:
+            self.start(run, settings, checkpoint)
+            loaded = self.runs[run]
+            chosen = [c for c in _chosen(loaded.opt) if c[0] == which]
+            if not chosen:
+                self.release(run)
+                raise api.EngineError(f"job '{run.split('#')[0]}' has no {which.upper()} "
+                                      "iteration yet")
+            loaded.estimating = uncertainty.estimating(loaded.opt, chosen, loaded.kinds,
+                                                       loaded.shapes)
+        if not self.estimate_part(run, seconds):
+            return None
         try:
             opt = self.runs[run].opt
-            chosen = [c for c in _chosen(opt) if c[0] == which]
-            if not chosen:
-                raise api.EngineError(f"job '{job}' has no {which.upper()} iteration yet")
-            e = uncertainty.of_kept(opt, chosen, self.runs[run].kinds,
-                                    self.runs[run].shapes)[which]
-            said = verdicts.several(verdicts.reconcile(e, diagnosis.Diagnosis(), {}),
-                                    opt.progress.probes, probes.spans(opt))
+            said = verdicts.several(
+                verdicts.reconcile(self.runs[run].estimated[which], diagnosis.Diagnosis(), {}),
+                opt.progress.probes, probes.spans(opt))
             return api.Estimated(said.errors, said.gains, said.notes)
         finally:
             self.release(run)

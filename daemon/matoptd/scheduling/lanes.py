@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import math
 import threading
@@ -48,6 +49,15 @@ def stop_note(reason: str, job: JobRecord) -> str:
     if reason == "iterations":
         return f"stopped after all {s.iterations} iterations"
     return f"stopped at iteration {job.iteration} of {s.iterations}: {reason}"
+
+
+@dataclass
+class Task:
+    """A request's call on a worker, ``fn(engine)``; ``worker``: where it ran, once begun."""
+
+    fn: Callable[[EngineClient], Any]
+    future: concurrent.futures.Future
+    worker: str = ""
 
 
 class Lane:
@@ -192,18 +202,19 @@ class Lane:
             self._fail(engine, record, action, str(exc))
 
     def _task(self, engine: EngineClient, action: Action) -> None:
-        fn, fut = action.task
+        task: Task = action.task
+        task.worker = action.worker
         try:
-            if fut.set_running_or_notify_cancel():
+            if task.future.set_running_or_notify_cancel():
                 try:
-                    fut.set_result(fn(engine))
+                    task.future.set_result(task.fn(engine))
                 except WorkerLost as lost:
-                    fut.set_exception(Internal(
+                    task.future.set_exception(Internal(
                         f"the renderer process {lost.reason} while serving this request; the "
                         "daemon and other users' jobs are unaffected"))
                     raise
                 except BaseException as exc:  # noqa: BLE001 - handed to the caller
-                    fut.set_exception(exc)
+                    task.future.set_exception(exc)
         finally:
             if self.worker.state != "restarting":  # a lost worker's action is settled
                 self._done(action)
@@ -477,6 +488,11 @@ class Lanes:
         return {t.native_id for t in self._threads if t.native_id is not None}
 
     @property
+    def step_seconds(self) -> float:
+        """About how long one turn of a worker takes (a step call's iterations)."""
+        return self.state.scheduler.step_seconds
+
+    @property
     def ready(self) -> bool:
         return any(w.state in ("idle", "busy") for w in self.state.workers.values())
 
@@ -503,9 +519,8 @@ class Lanes:
             thread.join()
         self.recovery.interrupt_all("the daemon was shut down")
 
-    async def run_task(self, fn: Callable[[EngineClient], Any]) -> Any:
-        """Runs ``fn(engine)`` on the next free worker, before any job's next iteration."""
-        fut: concurrent.futures.Future = concurrent.futures.Future()
+    def _submit(self, fn: Callable[[EngineClient], Any], worker: str | None = None) -> Task:
+        task = Task(fn, concurrent.futures.Future())
         with self.state.lock:
             if self.state.stopping:
                 raise Unavailable("the daemon is shutting down")
@@ -514,9 +529,34 @@ class Lanes:
             if not any(w.state != "failed" for w in self.state.workers.values()):
                 raise Unavailable("no renderer worker is running (matopt info lists them); "
                                   "try again once one is: jobs already created wait for it")
-            self.state.scheduler.add_task((fn, fut))
+            self.state.scheduler.add_task(task, worker)
             self.state.wake.notify_all()
-        return await asyncio.wrap_future(fut)
+        return task
+
+    async def run_task(self, fn: Callable[[EngineClient], Any]) -> Any:
+        """Runs ``fn(engine)`` on the next free worker, before any job's next iteration."""
+        return await asyncio.wrap_future(self._submit(fn).future)
+
+    async def run_in_pieces(self, piece: Callable[[EngineClient], Any],
+                            abandon: Callable[[EngineClient], None]) -> Any:
+        """``piece`` on the next free worker, then on that worker again until it returns
+        something other than None: a task of a minute (a paused job's standard errors) as
+        tasks of a step's time, with other jobs' turns between them. What a piece leaves
+        on its worker for the next is let go by the last piece, or by ``abandon`` when the
+        caller goes or a piece fails."""
+        worker = None
+        try:
+            while True:
+                task = self._submit(piece, worker)
+                out = await asyncio.wrap_future(task.future)
+                worker = task.worker
+                if out is not None:
+                    return out
+        except BaseException:
+            if worker is not None:
+                with contextlib.suppress(UserError):
+                    self._submit(abandon, worker)  # not waited for
+            raise
 
     def listing(self, user: str) -> list[WorkerStatus]:
         out = []

@@ -16,7 +16,9 @@ Tests drive it directly with a fake clock and no processes.
 
 Decisions, in order, for a free worker:
 1. a pause or cancel requested on a job loaded on it (acted on at an iteration boundary);
-2. a scene task (load, render, reference check): short, and a user is waiting on each;
+2. a scene task (load, render, reference check): short, and a user is waiting on each; a
+   task in pieces (a paused job's standard errors on request, up to a minute) is a piece per
+   task, each on the worker that holds its run and after another job's turn there, if any;
 3. the job whose slice is running, until ``slice_seconds`` have passed while others wait;
    a job in its end phase (its iterations are over, or it was cancelled) makes its result
    images one sensor per action ("results"), estimates its standard errors a step's time per
@@ -119,6 +121,7 @@ class Worker:
     action: Action | None = None
     current: str | None = None  # the job whose slice is running
     slice_start: float | None = None  # None: the current job's slice starts at its next step
+    piece: bool = False  # its last action was a task (a task's next piece waits a turn)
 
 
 @dataclass
@@ -150,7 +153,7 @@ class Scheduler:
         self.max_resident = max_resident
         self.jobs: dict[str, Job] = {}
         self.workers: dict[str, Worker] = {}
-        self.tasks: collections.deque = collections.deque()
+        self.tasks: collections.deque = collections.deque()  # (worker or None, task)
         self.held = False  # nothing starts while set (the daemon cannot record results)
         self.usage: dict[str, float] = collections.defaultdict(float)  # per user
         self.observer: Observer | None = None
@@ -163,8 +166,10 @@ class Scheduler:
         self.workers[name] = Worker(name)
 
     def remove_worker(self, name: str) -> None:
-        """The worker is gone for good (its machine left); call ``worker_lost`` first."""
+        """The worker is gone for good (its machine left); call ``worker_lost`` first. The
+        pieces of tasks it held go to any worker (which says it holds no such run)."""
         self.workers.pop(name, None)
+        self.tasks = collections.deque((None if w == name else w, t) for w, t in self.tasks)
 
     def worker_ready(self, name: str) -> None:
         self.workers[name].ready = True
@@ -307,8 +312,19 @@ class Scheduler:
 
     # -- tasks ------------------------------------------------------------------------------
 
-    def add_task(self, task: Any) -> None:
-        self.tasks.append(task)
+    def add_task(self, task: Any, worker: str | None = None) -> None:
+        """A task for any worker, or a piece of one for ``worker`` (which holds its run)."""
+        self.tasks.append((worker, task))
+
+    def _task(self, w: Worker) -> Any:
+        """The next task ``w`` takes: any worker's first; a piece for it after a job's turn
+        (when a job wants it), so that a task of many pieces does not hold it."""
+        for n, (worker, task) in enumerate(self.tasks):
+            if worker is None or (worker == w.name and (not w.piece or self._pick(w) is None)):
+                del self.tasks[n]
+                w.piece = True
+                return task
+        return None
 
     # -- the decision -----------------------------------------------------------------------
 
@@ -323,11 +339,13 @@ class Scheduler:
                 return self._begin(w, Action("cancel", worker, name))
             if job.phase is Phase.PAUSING:
                 return self._begin(w, Action("park", worker, name))
-        if self.tasks:
-            return self._begin(w, Action("task", worker, task=self.tasks.popleft()))
+        task = self._task(w)
+        if task is not None:
+            return self._begin(w, Action("task", worker, task=task))
         job = self._pick(w)
         if job is None:
             return None
+        w.piece = False
         if job.worker == worker:
             if w.current != job.name or w.slice_start is None or self._expired(w):
                 w.current, w.slice_start = job.name, self.clock()  # a new slice

@@ -161,9 +161,13 @@ class JobService(rpc.JobServiceServicer):
             raise FailedPrecondition(f"job '{name}' was paused before its first checkpoint: "
                                      "resume it for a few iterations, then pause it again")
         settings = job.settings
+        # In pieces of a step's time on one worker, other jobs' turns between them: an
+        # estimate may take a minute.
+        run, seconds = f"{name}#estimate-{uuid.uuid4().hex[:8]}", self.backend.lanes.step_seconds
         with self.backend.tasks.hold(caller()):
-            estimated = await self.backend.lanes.run_task(
-                lambda engine: engine.estimate(name, settings, checkpoint, chosen))
+            estimated = await self.backend.lanes.run_in_pieces(
+                lambda engine: engine.estimate(run, settings, checkpoint, chosen, seconds),
+                lambda engine: engine.release(run))
         result = dataclasses.replace(result, standard_errors=estimated.errors,
                                      gain_errors=estimated.gain_errors)
         out = convert.result_to_pb(result, job)

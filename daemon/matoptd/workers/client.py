@@ -57,9 +57,9 @@ class EngineClient(api.Engine):
                render: bool = True) -> api.Finished:
         return self._call("finish", job, history, cancelled, render)
 
-    def estimate(self, job: str, settings: JobSettings, checkpoint: bytes, which: str
-                 ) -> api.Estimated:
-        return self._call("estimate", job, settings, checkpoint, which)
+    def estimate(self, run: str, settings: JobSettings, checkpoint: bytes, which: str,
+                 seconds: float) -> api.Estimated | None:
+        return self._call("estimate", run, settings, checkpoint, which, seconds)
 
     def release(self, job: str) -> None:
         return self._call("release", job)
