@@ -103,6 +103,12 @@ def test_session_across_restart(own_daemon, tmp_path):
     # The state the request leads to, whether or not an iteration was under way.
     assert "PAUSED" in matopt(d, "job", "pause", long_job).stdout
     paused = wait_for(d, long_job, ("JOB_STATE_PAUSED",))
+    # Its standard errors on request: the person at the terminal is told they are under way.
+    asked = matopt(d, "job", "result", long_job, "--which", "last", "--estimate")
+    assert (f"estimating the standard errors of {long_job}'s last iteration on a worker"
+            in asked.stderr), asked.stderr
+    assert " +- " in asked.stdout and "standard errors: 3 components" in asked.stdout, \
+        asked.stdout
     matopt(d, "job", "resume", long_job)
     wait_for(d, long_job, ("JOB_STATE_RUNNING",))
     time.sleep(1.5)  # past a checkpoint (every 10 iterations)

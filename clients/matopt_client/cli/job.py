@@ -378,7 +378,12 @@ def result(name: str, which: str, estimate: bool, as_json: bool) -> None:
     not printed: 'matopt job export' writes them. The gains (with --fit-exposure) are what
     each reference's render was multiplied by.
     """
-    r = connected().jobs.GetJobResult(pb.GetJobResultRequest(
+    client = connected()
+    if estimate and not as_json and client.jobs.GetJob(
+            pb.GetJobRequest(name=name)).state == pb.JOB_STATE_PAUSED:
+        note(f"estimating the standard errors of {name}'s {which.lower()} iteration on a "
+             "worker, in turns with the jobs running there (up to a minute or two) ...")
+    r = client.jobs.GetJobResult(pb.GetJobResultRequest(
         name=name, which=WHICH[which.lower()], estimate_standard_errors=estimate))
     if as_json:
         emit_json(r)
