@@ -167,7 +167,7 @@ class Scheduler:
 
     def remove_worker(self, name: str) -> None:
         """The worker is gone for good (its machine left); call ``worker_lost`` first. The
-        pieces of tasks it held go to any worker (which says it holds no such run)."""
+        pieces of tasks for it go to any worker (where the next piece loads its run again)."""
         self.workers.pop(name, None)
         self.tasks = collections.deque((None if w == name else w, t) for w, t in self.tasks)
 
