@@ -45,3 +45,17 @@ def test_a_cell_holds_its_tables_gate_where_the_median_seed_ends_and_stays_withi
     assert met  # the defaults end below the plain loop's 50% and reach 2% where it never does
     assert row.endswith(f"| {'met' if held else 'MISSED'} |")
 
+
+
+def test_a_cell_counts_the_seeds_the_defaults_win_against_the_plain_loop_on_the_same_seed():
+    """The median of a few seeds falls either way where they spread widely: the row also says
+    on how many seeds the defaults end at most at the plain loop's worst at equal time, each
+    seed against its own (the same samples per iteration)."""
+    t = TABLES["table4"]
+    runs = [_run(t, "daemon", s, [e]) for s, e in enumerate([0.03, 0.05, 0.04])]
+    runs += [_run(t, rs.EQUAL_TIME, s, [e]) for s, e in enumerate([0.10, 0.02, 0.04])]
+    runs += [_run(t, "plain", s, [0.5]) for s in range(3)]
+    cell = dm.Cell(t.name, 64, 8, runs)
+    assert dm.won(t, cell) == 2                      # seeds 0 and 2 (a tie counts)
+    row, _, _ = dm.judge(t, cell)
+    assert "| 2 of 3 |" in row
