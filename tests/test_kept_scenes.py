@@ -321,3 +321,20 @@ def test_a_paused_jobs_estimate_in_pieces_goes_on_after_its_run_is_lost(make):
         assert "not_determined" not in f.reading and np.all(np.isfinite(f.error)), f
         # as uninterrupted, up to J's noise (the spp its passes get follows their time)
         assert np.all((f.error > e.error / 3) & (f.error < 3 * e.error)), (e.error, f.error)
+
+
+def test_a_later_piece_without_the_checkpoint_says_when_its_run_is_gone(make):
+    """Pieces after the first leave out the checkpoint; one that finds its run gone (the
+    worker restarted) says so by name, and the daemon sends the checkpoint again."""
+    from matoptd import engine_api as api
+    engine, settings = make
+    engine.start("b", settings(), None)
+    for _ in range(5):
+        engine.step("b", 1)
+    checkpoint = engine.checkpoint("b")
+    engine.release("b")
+    assert engine.estimate("b#e", settings(), checkpoint, "last", 0.01) is None
+    engine.estimate("b#e", None, None, "last", 0.01)  # goes on without it (or ends)
+    engine.release("b#e")
+    with pytest.raises(api.EngineError, match="'b#e' is not loaded on this worker"):
+        engine.estimate("b#e", None, None, "last", 0.01)

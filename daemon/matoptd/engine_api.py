@@ -299,13 +299,14 @@ class Engine(Protocol):
         and its diagnosis, from its history as the daemon recorded it. Without ``render``,
         no per-sensor images (``result_images`` made them)."""
 
-    def estimate(self, run: str, settings: JobSettings, checkpoint: bytes, which: str,
-                 seconds: float) -> Estimated | None:
+    def estimate(self, run: str, settings: JobSettings | None, checkpoint: bytes | None,
+                 which: str, seconds: float) -> Estimated | None:
         """Standard errors of a paused job's kept iteration ("best" or "last"), from its
         checkpoint, for about ``seconds`` a call: None until they are done. The daemon asks
         until they are, one turn of the worker each (the same worker: it holds the ``run``,
-        loaded by the first call, or again by a call that finds it gone, and released by
-        the last)."""
+        loaded by the first call, released by the last). Later calls may leave out the
+        settings and checkpoint; one that finds the run gone then raises EngineError, and
+        with them loads it again."""
 
     def release(self, job: str) -> None:
         """Forgets the job's run and returns its memory."""

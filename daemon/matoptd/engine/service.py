@@ -340,15 +340,18 @@ class MitsubaEngine:
             r.standard_errors, r.gain_errors = final.errors, final.gains
         return api.Finished(results, said.notes + opt.said, _counters(opt))
 
-    def estimate(self, run: str, settings: api.JobSettings, checkpoint: bytes, which: str,
-                 seconds: float) -> api.Estimated | None:
+    def estimate(self, run: str, settings: api.JobSettings | None, checkpoint: bytes | None,
+                 which: str, seconds: float) -> api.Estimated | None:
         """Standard errors of a paused job's kept iteration ("best" or "last"), as its end
         would estimate them, for about ``seconds`` (one pass of J at the least); None until
         they are done. The job is loaded from its checkpoint as ``run``, a name of its own
         (a resume meanwhile loads the job apart), by the first call or by one that finds it
-        gone (its worker restarted), and released when they are done. The checkpoint holds
-        no gradient records: the noise is the model's and no distance to go is added."""
+        gone (its worker restarted), and released when they are done; a call without them
+        finding it gone raises. The checkpoint holds no gradient records: the noise is the
+        model's and no distance to go is added."""
         if run not in self.runs:
+            if settings is None or checkpoint is None:
+                raise api.EngineError(f"'{run}' is not loaded on this worker")
             self.start(run, settings, checkpoint)
             loaded = self.runs[run]
             chosen = [c for c in _chosen(loaded.opt) if c[0] == which]

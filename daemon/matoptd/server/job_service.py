@@ -164,10 +164,23 @@ class JobService(rpc.JobServiceServicer):
         # In pieces of a step's time on one worker, other jobs' turns between them: an
         # estimate may take a minute.
         run, seconds = f"{name}#estimate-{uuid.uuid4().hex[:8]}", self.backend.lanes.step_seconds
+        loaded = False
+
+        def piece(engine):
+            # The checkpoint (megabytes with textures) goes with the first piece only, and
+            # again should a piece find the run gone (its worker restarted).
+            nonlocal loaded
+            if loaded:
+                try:
+                    return engine.estimate(run, None, None, chosen, seconds)
+                except FailedPrecondition:
+                    pass
+            loaded = True
+            return engine.estimate(run, settings, checkpoint, chosen, seconds)
+
         with self.backend.tasks.hold(caller()):
             estimated = await self.backend.lanes.run_in_pieces(
-                lambda engine: engine.estimate(run, settings, checkpoint, chosen, seconds),
-                lambda engine: engine.release(run))
+                piece, lambda engine: engine.release(run))
         result = dataclasses.replace(result, standard_errors=estimated.errors,
                                      gain_errors=estimated.gain_errors)
         out = convert.result_to_pb(result, job)

@@ -57,8 +57,8 @@ class EngineClient(api.Engine):
                render: bool = True) -> api.Finished:
         return self._call("finish", job, history, cancelled, render)
 
-    def estimate(self, run: str, settings: JobSettings, checkpoint: bytes, which: str,
-                 seconds: float) -> api.Estimated | None:
+    def estimate(self, run: str, settings: JobSettings | None, checkpoint: bytes | None,
+                 which: str, seconds: float) -> api.Estimated | None:
         return self._call("estimate", run, settings, checkpoint, which, seconds)
 
     def release(self, job: str) -> None:
