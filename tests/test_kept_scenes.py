@@ -289,17 +289,23 @@ def test_a_job_whose_last_iteration_was_its_best_renders_that_result_once(make):
     assert best["initial"].exr == last["initial"].exr
 
 
+def _paused(engine, settings, n: int) -> bytes:
+    """The checkpoint of a job paused after ``n`` iterations (its run released)."""
+    engine.start("paused", settings, None)
+    for _ in range(n):
+        engine.step("paused", 1)
+    checkpoint = engine.checkpoint("paused")
+    engine.release("paused")
+    return checkpoint
+
+
 def test_a_paused_jobs_estimate_in_pieces_goes_on_after_its_run_is_lost(make):
     """A paused job's standard errors on request come in pieces, each a call on the worker
     that holds the estimate's run; a worker restarted between two pieces holds it no more,
     and the next piece loads it again from the checkpoint and finishes: the user still gets
     every standard error. The last piece lets the run go."""
     engine, settings = make
-    engine.start("a", settings(), None)
-    for _ in range(20):
-        engine.step("a", 1)
-    checkpoint = engine.checkpoint("a")
-    engine.release("a")
+    checkpoint = _paused(engine, settings(), 20)
 
     def ask(run: str, lose_after: int = -1):
         pieces = 0
@@ -328,11 +334,7 @@ def test_a_later_piece_without_the_checkpoint_says_when_its_run_is_gone(make):
     worker restarted) says so by name, and the daemon sends the checkpoint again."""
     from matoptd import engine_api as api
     engine, settings = make
-    engine.start("b", settings(), None)
-    for _ in range(5):
-        engine.step("b", 1)
-    checkpoint = engine.checkpoint("b")
-    engine.release("b")
+    checkpoint = _paused(engine, settings(), 5)
     assert engine.estimate("b#e", settings(), checkpoint, "last", 0.01) is None
     engine.estimate("b#e", None, None, "last", 0.01)  # goes on without it (or ends)
     engine.release("b#e")
