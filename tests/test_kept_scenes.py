@@ -204,18 +204,20 @@ def test_on_a_daemon_a_job_again_and_two_jobs_in_turn_have_their_losses_alone(tm
 def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_losses(make):
     """The kept scene keeps the frozen iteration's recording and the integrator it was made
     with: later jobs of the same structure trace nothing at their iteration 0 (their notes and
-    status say so) and follow the first job's losses. Each job runs to its end as on a
-    daemon: its result images and its standard errors' renders leave the scene's films and
-    constants otherwise than an iteration does (each of them made every later job record
-    again). Each job's reference also resizes the film, which the kept scene puts back, and
+    status say so) and follow the first job's losses, and their result images replay the
+    first job's recording of them. Each job runs to its end as on a daemon: its standard
+    errors' renders leave the scene's films and constants otherwise than an iteration does
+    (which made every later job record again). Each job's reference also resizes the film, which the kept scene puts back, and
     Dr.Jit now and then lays out a film just resized otherwise and records once more: of four
     later jobs at least three replay, and none records more than once."""
     import gc
+
+    import drjit as dr
     gc.collect()  # other tests' scenes, freed in between, would change what a recording
     # traverses (each live instance of a kind the render dispatches over)
     engine, settings = make
     first = _run(engine, "a", settings(), end=True)
-    replayed = 0
+    replayed = images_replayed = 0
     for name in ("b", "c", "d", "e"):
         engine.start(name, settings(), None)
         opt = engine.runs[name].opt
@@ -227,11 +229,41 @@ def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_loss
             replayed += 1
             assert opt.said == ["frozen: iteration 0 replayed the recording a job before made "
                                 "on this scene: nothing traced or recorded"]
-        engine.result_images(name, 0)
+        before = opt.group.images.n_recordings  # the shelf's, which job "a" recorded in
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()  # empties it
+            engine.result_images(name, 0)
+            launched = [k["recording_mode"] for k in dr.kernel_history()
+                        if k["type"] == dr.KernelType.JIT]
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        images_replayed += (opt.group.images.n_recordings == before
+                            and dr.KernelRecordingMode.Replayed in launched
+                            and dr.KernelRecordingMode.Recorded not in launched)
         engine.finish(name, [], False, False)
         engine.release(name)
         np.testing.assert_allclose(again, first, rtol=1e-6)
     assert replayed >= 3
+    assert images_replayed >= 3  # the result images at 64 spp: replayed, nothing traced
+
+
+def test_result_images_replayed_are_the_images_an_unfrozen_job_renders(make):
+    """A job's result images come from the recording kept with the scene where its
+    iterations are frozen: the same pixels as rendered unfrozen (frozen=off) at the same
+    values and samples."""
+    engine, settings = make
+    images = {}
+    for name, choices in (("frozen", {}), ("unfrozen", {"frozen": "off"}),
+                          ("again", {})):
+        _run(engine, name, settings(seed=5, choices=choices), release=False)
+        renders = engine.runs[name].opt.renders
+        assert (renders.frozen is None) == (name == "unfrozen")
+        images[name] = renders.render({RED: np.array([0.3, 0.6, 0.2])}, 0, 64)
+        engine.release(name)
+    assert images["frozen"].shape == (32, 64, 3) and images["frozen"].mean() > 0.05
+    np.testing.assert_allclose(images["frozen"], images["unfrozen"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(images["again"], images["frozen"], rtol=1e-5, atol=1e-6)
 
 
 def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_alone(make):

@@ -21,15 +21,15 @@ A structure here: the spp, the integrator object, the films' sizes. When it chan
 recordings are dropped and the job's notes say that it recorded again and why.
 
 A recording replays only for inputs laid out as when it was made, and renders outside these
-functions (a job's result images, its standard errors' passes) leave the scene otherwise than
-an iteration does: its films' storage, and literals (constants) set to other values. So the
+functions (a job's standard errors' passes) leave the scene otherwise than an iteration
+does: its films' storage, and literals (constants) set to other values. So the
 films are emptied before each call (``fresh_films``) and every input is opaque from the first
 recording on (``auto_opaque=False``; by default a literal that changes between calls is made
 opaque by recording again, which cost the second job on a scene 0.6-0.8 s of compiles).
 
-The frozen function and its structure stay on a kept scene's shelf (kept_scenes.py) for the
-next job on it: with the same integrator (the shelf's) and structure, that job's iteration 0
-replays the recording instead of tracing and recording again.
+The frozen functions and their structure stay on a kept scene's shelf (kept_scenes.py) for
+the next job on it: with the same integrator (the shelf's) and structure, that job's iteration
+0 and its result images replay the recordings instead of tracing and recording again.
 
 On a scene just loaded, each sensor group's first call runs unfrozen: a render leaves state in
 the scene (its film's, its sampler's) that is among the recording's inputs, so a recording
@@ -120,9 +120,11 @@ def fresh_films(scene) -> None:
         sensor.film().prepare([])
 
 
-def _detached_images(scene, params, integrator, sensor, spp, seeds):
+def _detached_images(scene, integrator, sensor, spp, seeds):
+    # No SceneParameters: a recording's key would hold the job's own (see _Holder), and a
+    # detached render needs none.
     with dr.suspend_grad():
-        return render_images(scene, params, integrator, sensor, spp, seeds)
+        return render_images(scene, None, integrator, sensor, spp, seeds)
 
 
 class FrozenLoss:
@@ -136,7 +138,11 @@ class FrozenLoss:
         self.taken = taken is not None  # a recording made by a job before may replay
         self.fn, self.structure, self.holder = taken or (
             dr.freeze(_group_loss, warn_after=1000, auto_opaque=False), None, _Holder())
-        self.images = dr.freeze(_detached_images, warn_after=1000, auto_opaque=False)
+        # Primal renders at other values or spp (eta +- h, result images), kept for the next
+        # job on the scene as the iteration's recording is.
+        self.images = ctx.shelf.get("frozen images") or dr.freeze(
+            _detached_images, warn_after=1000, auto_opaque=False)
+        ctx.shelf["frozen images"] = self.images
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
         self.stale = False    # the leaves hold a gradient not (yet) carried on
         self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
@@ -226,10 +232,11 @@ class FrozenLoss:
     def render(self, scene, params, integrator, sensor: int, spp: int, seeds: list[int]
                ) -> list:
         """``renders.render_images``, detached, replayed (a choice's renders at other values,
-        set outside: the scene is an argument, read afresh at each replay)."""
+        a job's result images: set outside, the scene is an argument, read afresh at each
+        replay); ``params`` unused (a detached render differentiates nothing)."""
         before = self.images.n_recordings
         fresh_films(scene)
-        out = call(self.images, scene, params, integrator, sensor, spp,
+        out = call(self.images, scene, integrator, sensor, spp,
                    [dr.opaque(mi.UInt32, s) for s in seeds])
         self.recordings += self.images.n_recordings - before
         return out

@@ -58,8 +58,8 @@ def image_loss(fn: Callable, clamp: bool, images: list, target, weight):
 class Renders:
     """The scene, its traversal (kept to the selected keys), the integrator and references;
     ``on_images``: the choices' map of a sensor's renders; ``restore``: the scene back to the
-    loop's theta after a render ``holding`` other values; ``frozen``: what renders a choice's
-    detached images (eta +- h) where the iterations are frozen."""
+    loop's theta after a render ``holding`` other values; ``frozen``: what renders detached
+    images (a choice's at eta +- h, the result images) where the iterations are frozen."""
 
     scene: mi.Scene
     params: mi.SceneParameters
@@ -104,12 +104,13 @@ class Renders:
     def render(self, values: dict[str, np.ndarray], sensor: int, spp: int,
                gains: dict[int, np.ndarray] | None = None) -> np.ndarray:
         """A primal render with the selected parameters set to ``values``, times the sensor's
-        gain when ``gains`` has one (as the loss compares it)."""
+        gain when ``gains`` has one (as the loss compares it). Replayed where the iterations
+        are frozen, so that the next job on the scene does not trace its result images again."""
+        render = self.frozen or render_images
         with self.holding(values), dr.suspend_grad():
-            img = mi.render(self.scene, self.params, sensor=sensor, spp=spp,
-                            integrator=self.integrator,
-                            seed=seed(self.settings.seed, 0, 0, 1) + 7)
-        img = np.array(img, dtype=np.float32)[..., :3]
+            img = render(self.scene, self.params, self.integrator, sensor, spp,
+                         [(seed(self.settings.seed, 0, 0, 1) + 7) % 2**32])[0]
+        img = np.array(img, dtype=np.float32)
         return img * gains[sensor] if gains and sensor in gains else img
 
     def image_error(self, values: dict[str, np.ndarray],
