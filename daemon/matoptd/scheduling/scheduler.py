@@ -38,7 +38,8 @@ live instance (an iteration of a 64 px Cornell box took 2.4x as long with four o
 scenes alive in the process). Switches are what slices pay for, so a slice is long against a
 switch and short against a user's patience (bench/switching.py measures both). A job whose
 standard errors are under way is not evicted (it would begin them again): the job due loads
-beside it, one more for that while.
+beside it, one more for that while; so does a paused job's run while its standard errors
+on request are estimated in pieces (the engine loads it; the scheduler does not count it).
 
 ``Scheduler`` is over 300 lines: the transitions and the decisions read the same few fields,
 and splitting them would put one state machine's rules in two places.
