@@ -414,6 +414,35 @@ def wall_spec(scene: pb.Scene, ref_blob: str, *, iterations: int, spp: int,
                       schedule=schedule, loss=pb.LOSS_MSE, seed=seed)
 
 
+def candidate(named: dict[str, str]) -> tuple[dict[str, str], dict[str, object]]:
+    """A candidate default's NAME=VALUE pairs as (choices, JobSpec fields): a name that is a
+    field of JobSpec (schedule=constant, learning_rate=0.05) sets it, any other names a choice
+    (gauss_newton=on). A default on trial may be a setting as well as a choice."""
+    fields = pb.JobSpec.DESCRIPTOR.fields_by_name
+    choices, spec = {}, {}
+    for name, value in named.items():
+        field = fields.get(name)
+        if field is None:
+            choices[name] = value
+        elif field.enum_type is not None:
+            names = [v.name for v in field.enum_type.values
+                     if v.name in (value, value.upper()) or v.name.endswith("_" + value.upper())]
+            if len(names) != 1:
+                raise ValueError(f"{name}={value}: not one of "
+                                 f"{', '.join(v.name for v in field.enum_type.values)}")
+            spec[name] = field.enum_type.values_by_name[names[0]].number
+        elif field.type in (field.TYPE_FLOAT, field.TYPE_DOUBLE):
+            spec[name] = float(value)
+        elif field.type in (field.TYPE_INT32, field.TYPE_INT64, field.TYPE_UINT32,
+                            field.TYPE_UINT64):
+            spec[name] = int(value)
+        elif field.type == field.TYPE_STRING:
+            spec[name] = value
+        else:
+            raise ValueError(f"{name}={value}: JobSpec.{name} is not a scalar setting")
+    return choices, spec
+
+
 # ---------------------------------------------------------------------------------------------
 # Timing and statistics
 # ---------------------------------------------------------------------------------------------

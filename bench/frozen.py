@@ -135,8 +135,11 @@ def _thesis(settings: Settings, server: common.Daemon, iterations: int, rounds: 
               "Equal work: the plain loop's own steps (the plain preset) frozen, their "
               "iterations alone."]
     gpu = server.cuda and not settings.quick  # --quick: the CPU's cells, smaller
-    for table in [t for t in real_scenes.TABLES if not gpu or t.name in GPU_TABLES]:
-        for width, height in GPU_SIZES if gpu else THESIS_SIZES:
+    tables = [t for t in real_scenes.TABLES if (not gpu or t.name in GPU_TABLES)
+              and (not settings.tables or t.name in settings.tables)]
+    sizes = [settings.film] if settings.film else GPU_SIZES if gpu else THESIS_SIZES
+    for table in tables:
+        for width, height in sizes:
             size = f"{width}x{height}"
             p = real_scenes.Plan((width, height), iterations, 1, False, server.cuda)
             prep = real_scenes.prepare(server.client, table, p, settings)

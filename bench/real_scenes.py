@@ -276,6 +276,9 @@ def daemon_spec(prep: Prepared, seed: int, iterations: int, choices: dict[str, s
     if preset_plain:
         spec.schedule = pb.SCHEDULE_CONSTANT
         choices = {"all": "off", **(choices or {})}
+    choices, fields = common.candidate(choices or {})
+    for name, value in fields.items():
+        setattr(spec, name, value)
     if choices:
         spec.choices.update(choices)
     return spec

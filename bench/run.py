@@ -181,12 +181,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant", default="",
                    help="the daemons' and plain loops' Mitsuba variant, e.g. cuda_ad_rgb")
     p.add_argument("--film", metavar="WxH", help="real_scenes: the film rendered (default "
-                   "683x512 on a GPU, 128x96 on the CPU)")
+                   "683x512 on a GPU, 128x96 on the CPU); frozen: its thesis scenes' one size")
     p.add_argument("--iterations", type=int, default=0,
                    help="real_scenes: iterations per run (default 150 on a GPU, 100 on the CPU)")
     p.add_argument("--seeds", type=int, default=0, help="real_scenes: seeds (default 3)")
     p.add_argument("--tables", nargs="+", metavar="TABLE", default=(),
-                   help="real_scenes: only these of its tables, e.g. table4 (default: all)")
+                   help="real_scenes, defaults_matrix, frozen: only these of the thesis's tables, e.g. "
+                   "table4 (default: all)")
     p.add_argument("--defaults-only", action="store_true",
                    help="real_scenes: only the plain loop and the daemon's defaults per seed "
                    "(no choices turned off, no plain preset, no equal-work pairs)")
@@ -205,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
                    "into docs/benchmarks.md")
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
                    help="real_scenes, defaults_matrix: also a daemon job per seed with this "
-                   "choice set (e.g. gauss_newton=on), beside the defaults; stability: each "
-                   "stiff case again with it")
+                   "choice set (e.g. gauss_newton=on) or JobSpec field (schedule=constant), "
+                   "beside the defaults; stability: each stiff case again with it")
     p.add_argument("--candidate-only", action="store_true",
                    help="defaults_matrix, stability: the --with-choice job in place of the "
                    "defaults, judged as they are (the plain loop at equal time runs for its "

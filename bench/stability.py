@@ -63,8 +63,10 @@ def _notes(job) -> str:
 
 
 def _candidate(case: Case, choices: dict[str, str]) -> Case:
-    """The case with ``choices`` set over its own (a candidate default on trial)."""
-    spec = dict(case.spec, choices={**case.spec.get("choices", {}), **choices})
+    """The case with ``choices`` (and JobSpec fields, ``common.candidate``) set over its own
+    (a candidate default on trial)."""
+    choices, fields = common.candidate(choices)
+    spec = dict(case.spec, **fields, choices={**case.spec.get("choices", {}), **choices})
     return dataclasses.replace(case, name=f"{case.name}, candidate", spec=spec)
 
 

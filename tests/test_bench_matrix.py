@@ -59,3 +59,17 @@ def test_a_cell_counts_the_seeds_the_defaults_win_against_the_plain_loop_on_the_
     assert dm.won(t, cell) == 2                      # seeds 0 and 2 (a tie counts)
     row, _, _ = dm.judge(t, cell)
     assert "| 2 of 3 |" in row
+
+
+def test_a_candidate_names_choices_and_jobspec_settings_and_a_bad_value_says_what_is_legal():
+    import common
+    choices, fields = common.candidate({"schedule": "constant", "learning_rate": "0.05",
+                                        "gauss_newton": "on"})
+    assert choices == {"gauss_newton": "on"}
+    assert fields == {"schedule": common.pb.SCHEDULE_CONSTANT, "learning_rate": 0.05}
+    with pytest.raises(ValueError, match="schedule=linear: not one of .*SCHEDULE_COSINE"):
+        common.candidate({"schedule": "linear"})
+    spec = common.pb.JobSpec(seed=3)
+    for name, value in fields.items():
+        setattr(spec, name, value)
+    assert spec.schedule == common.pb.SCHEDULE_CONSTANT and spec.learning_rate == pytest.approx(0.05)
