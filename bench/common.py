@@ -414,6 +414,11 @@ def wall_spec(scene: pb.Scene, ref_blob: str, *, iterations: int, spp: int,
                       schedule=schedule, loss=pb.LOSS_MSE, seed=seed)
 
 
+_F = pb.JobSpec.DESCRIPTOR.fields[0]  # a FieldDescriptor, for its type constants
+_SCALARS = {_F.TYPE_FLOAT: float, _F.TYPE_DOUBLE: float, _F.TYPE_INT32: int, _F.TYPE_INT64: int,
+            _F.TYPE_UINT32: int, _F.TYPE_UINT64: int, _F.TYPE_STRING: str}
+
+
 def candidate(named: dict[str, str]) -> tuple[dict[str, str], dict[str, object]]:
     """A candidate default's NAME=VALUE pairs as (choices, JobSpec fields): a name that is a
     field of JobSpec (schedule=constant, learning_rate=0.05) sets it, any other names a choice
@@ -431,13 +436,8 @@ def candidate(named: dict[str, str]) -> tuple[dict[str, str], dict[str, object]]
                 raise ValueError(f"{name}={value}: not one of "
                                  f"{', '.join(v.name for v in field.enum_type.values)}")
             spec[name] = field.enum_type.values_by_name[names[0]].number
-        elif field.type in (field.TYPE_FLOAT, field.TYPE_DOUBLE):
-            spec[name] = float(value)
-        elif field.type in (field.TYPE_INT32, field.TYPE_INT64, field.TYPE_UINT32,
-                            field.TYPE_UINT64):
-            spec[name] = int(value)
-        elif field.type == field.TYPE_STRING:
-            spec[name] = value
+        elif field.type in _SCALARS:  # JobSpec's repeated fields are all messages
+            spec[name] = _SCALARS[field.type](value)
         else:
             raise ValueError(f"{name}={value}: JobSpec.{name} is not a scalar setting")
     return choices, spec

@@ -6,6 +6,7 @@ the kept one."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 from pathlib import Path
 
@@ -71,26 +72,36 @@ def _run(engine, name: str, settings, n: int = 4, release: bool = True, end: boo
     return losses
 
 
+@contextlib.contextmanager
+def _launched():
+    """The JIT kernels launched inside, filled in on leaving (Dr.Jit's kernel history, on
+    only for that while)."""
+    import drjit as dr
+    kernels: list[dict] = []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # empties it
+        yield kernels
+        kernels += [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
 def test_a_job_run_again_takes_the_kept_scene_compiles_nothing_and_has_the_same_losses(make):
     import drjit as dr
     engine, settings = make
     first = _run(engine, "a", settings())
     kept = engine.kept.kept
     assert kept is not None
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()  # empties it
+    with _launched() as kernels:
         engine.start("b", settings(), None)
         assert engine.runs["b"].scene is kept  # the very scene, not a new load
         again = [engine.step("b", 1).records[0].loss for _ in range(4)]
-        # A frozen job records its iteration anew: in a fresh process its recording's kernels
-        # hit the cache too, but after other jobs' recordings in the same process they may not
-        # (seen after tests/test_frozen.py). The scene's own kernels must never compile again.
-        compiled = [k for k in dr.kernel_history()
-                    if k["type"] == dr.KernelType.JIT and not k["cache_hit"]
-                    and k["recording_mode"] != dr.KernelRecordingMode.Recorded]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    # A frozen job records its iteration anew: in a fresh process its recording's kernels
+    # hit the cache too, but after other jobs' recordings in the same process they may not
+    # (seen after tests/test_frozen.py). The scene's own kernels must never compile again.
+    compiled = [k for k in kernels if not k["cache_hit"]
+                and k["recording_mode"] != dr.KernelRecordingMode.Recorded]
     engine.release("b")
     assert compiled == []
     np.testing.assert_allclose(again, first, rtol=1e-6)
@@ -207,9 +218,10 @@ def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_loss
     status say so) and follow the first job's losses, and their result images replay the
     first job's recording of them. Each job runs to its end as on a daemon: its standard
     errors' renders leave the scene's films and constants otherwise than an iteration does
-    (which made every later job record again). Each job's reference also resizes the film, which the kept scene puts back, and
-    Dr.Jit now and then lays out a film just resized otherwise and records once more: of four
-    later jobs at least three replay, and none records more than once."""
+    (which made every later job record again). Each job's reference also resizes the film,
+    which the kept scene puts back, and Dr.Jit now and then lays out a film just resized
+    otherwise and records once more: of four later jobs at least three replay, and none
+    records more than once."""
     import gc
 
     import drjit as dr
@@ -230,14 +242,9 @@ def test_a_frozen_job_again_replays_the_kept_scenes_recording_with_the_same_loss
             assert opt.said == ["frozen: iteration 0 replayed the recording a job before made "
                                 "on this scene: nothing traced or recorded"]
         before = opt.group.images.n_recordings  # the shelf's, which job "a" recorded in
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        try:
-            dr.kernel_history()  # empties it
+        with _launched() as kernels:
             engine.result_images(name, 0)
-            launched = [k["recording_mode"] for k in dr.kernel_history()
-                        if k["type"] == dr.KernelType.JIT]
-        finally:
-            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        launched = [k["recording_mode"] for k in kernels]
         images_replayed += (opt.group.images.n_recordings == before
                             and dr.KernelRecordingMode.Replayed in launched
                             and dr.KernelRecordingMode.Recorded not in launched)
