@@ -220,6 +220,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--depth", type=int, nargs="+", default=(), metavar="DEPTH",
                    help="defaults_matrix: the max_depth of its cells (default 8 64)")
     args = p.parse_args(argv)
+    for c in args.with_choice:
+        if "=" not in c:
+            p.error(f"--with-choice wants NAME=VALUE, got {c!r}")
+    try:  # a bad candidate says so here, not after a daemon started and a case ran
+        common.candidate(dict(c.split("=", 1) for c in args.with_choice))
+    except ValueError as e:
+        p.error(f"--with-choice {e}")
     if args.splice:
         return gpu_run.splice(args.splice, DOCS)
     if args.gpu:

@@ -73,3 +73,13 @@ def test_a_candidate_names_choices_and_jobspec_settings_and_a_bad_value_says_wha
     for name, value in fields.items():
         setattr(spec, name, value)
     assert spec.schedule == common.pb.SCHEDULE_CONSTANT and spec.learning_rate == pytest.approx(0.05)
+
+
+def test_a_bad_candidate_stops_the_bench_before_any_case_runs(capsys):
+    import run
+    for bad, said in (("schedule=linear", "not one of SCHEDULE_UNSPECIFIED, SCHEDULE_COSINE"),
+                      ("gauss_newton", "wants NAME=VALUE, got 'gauss_newton'")):
+        with pytest.raises(SystemExit) as stopped:
+            run.main(["--only", "defaults_matrix", "--with-choice", bad])
+        assert stopped.value.code == 2
+        assert said in capsys.readouterr().err
