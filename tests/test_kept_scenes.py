@@ -274,10 +274,12 @@ def test_result_images_replayed_are_the_images_an_unfrozen_job_renders(make):
 
 
 def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_alone(make):
-    """A recording is replayed only for its own structure: a job at other spp on the kept
-    scene records again (its notes say why) and follows the losses it has on a new load."""
+    """A recording is replayed only for its own structure: a job at a spp that no job on the
+    kept scene ran records anew (its notes say why) and follows the losses it has on a new
+    load."""
     engine, settings = make
     alone = _run(engine, "spp8", settings(spp=8))
+    engine.kept.drop()  # the next job loads the scene anew: nothing of spp 8 kept
     _run(engine, "a", settings())  # leaves its spp-4 recording on the kept scene
     engine.start("spp8-again", settings(spp=8), None)
     opt = engine.runs["spp8-again"].opt
@@ -285,6 +287,40 @@ def test_a_job_of_another_structure_on_the_kept_scene_records_anew_and_runs_as_a
     assert opt.said[0] == "frozen: iteration 0 recorded again (spp 4 -> 8)"
     engine.release("spp8-again")
     np.testing.assert_allclose(again, alone, rtol=1e-6)
+
+
+def test_jobs_of_two_structures_in_turn_on_the_kept_scene_replay_their_own_recordings(
+        make, monkeypatch):
+    """Users' jobs at two spp taking turns on one scene: each structure's recordings stay
+    on the kept scene, so after the first job of each, the jobs replay their own (their
+    notes say so) and follow the losses they have alone. Only the last KEPT_STRUCTURES
+    structures are kept: a third spp drops the oldest, which then records again."""
+    from matoptd.engine import frozen
+    monkeypatch.setattr(frozen, "KEPT_STRUCTURES", 2)
+    engine, settings = make
+    alone = {spp: _run(engine, f"alone{spp}", settings(spp=spp)) for spp in (4, 8)}
+    replayed = 0
+    for turn, spp in enumerate((4, 8, 4, 8, 4)):
+        name = f"turn{turn}"
+        engine.start(name, settings(spp=spp), None)
+        opt = engine.runs[name].opt
+        losses = [engine.step(name, 1).records[0].loss for _ in range(4)]
+        engine.release(name)
+        np.testing.assert_allclose(losses, alone[spp], rtol=1e-6)
+        # the last job's recording is of the other spp: each turn changes the structure
+        other = 12 - spp
+        assert opt.said[0].startswith("frozen: iteration 0 replays its structure's recording"
+                                      f" (spp {other} -> {spp})"), opt.said
+        assert opt.group.recordings <= 1  # a film just resized now and then records once
+        replayed += opt.group.recordings == 0
+    assert replayed >= 4
+    _run(engine, "spp2", settings(spp=2))  # a third structure: spp 8's are the oldest
+    engine.start("spp8-dropped", settings(spp=8), None)
+    opt = engine.runs["spp8-dropped"].opt
+    engine.step("spp8-dropped", 1)
+    engine.release("spp8-dropped")
+    assert opt.said[0] == "frozen: iteration 0 recorded again (spp 2 -> 8)"
+    assert sorted(spp for spp, _, _ in engine.kept.kept.shelf["frozen"]) == [2, 8]
 
 
 def test_the_next_job_against_the_same_reference_reads_it_once(make, monkeypatch):

@@ -17,8 +17,11 @@ What keeps a replay equal to the unfrozen iteration:
   frozen functions' (``renders.Renders.frozen``), the values set outside and read from the
   scene, an argument.
 
-A structure here: the spp, the integrator object, the films' sizes. When it changes, the old
-recordings are dropped and the job's notes say that it recorded again and why.
+A structure here: the spp, the integrator object, the films' sizes. Each has recordings of its
+own, and a scene keeps those of its last KEPT_STRUCTURES structures: jobs at other spp or film
+sizes that take turns on a scene (users sharing it, a spp schedule) replay rather than record
+again. When the structure changes, the job's notes say so, why, and whether it replays or
+records.
 
 A recording replays only for inputs laid out as when it was made, and renders outside these
 functions (a job's standard errors' passes) leave the scene otherwise than an iteration
@@ -27,9 +30,9 @@ films are emptied before each call (``fresh_films``) and every input is opaque f
 recording on (``auto_opaque=False``; by default a literal that changes between calls is made
 opaque by recording again, which cost the second job on a scene 0.6-0.8 s of compiles).
 
-The frozen functions and their structure stay on a kept scene's shelf (kept_scenes.py) for
-the next job on it: with the same integrator (the shelf's) and structure, that job's iteration
-0 and its result images replay the recordings instead of tracing and recording again.
+The frozen functions, by structure, stay on a kept scene's shelf (kept_scenes.py) for the
+next job on it: with the same integrator (the shelf's) and a structure kept, that job's
+iteration 0 and its result images replay the recordings instead of tracing and recording again.
 
 On a scene just loaded, each sensor group's first call runs unfrozen: a render leaves state in
 the scene (its film's, its sampler's) that is among the recording's inputs, so a recording
@@ -53,6 +56,9 @@ FREEZABLE = ("prb_basic", "prb", "prbvolpath")
 # Parameters that move geometry: their update rebuilds the acceleration structure, and their
 # gradients need a projective integrator.
 GEOMETRY_KINDS = ("vertex_array", "transform")
+# The structures whose recordings a scene keeps (the most recently used): each holds its
+# kernels and launch plan, so a scene's memory grows with the structures it keeps.
+KEPT_STRUCTURES = 4
 
 
 def unfreezable(integrator: str, kinds: dict[str, str]) -> str:
@@ -133,23 +139,20 @@ class FrozenLoss:
 
     def __init__(self, ctx) -> None:
         self.ctx = ctx
-        # (the frozen function, its structure, its holder) of a job before on this scene
-        taken = ctx.shelf.get("frozen")
-        self.taken = taken is not None  # a recording made by a job before may replay
-        self.fn, self.structure, self.holder = taken or (
-            dr.freeze(_group_loss, warn_after=1000, auto_opaque=False), None, _Holder())
-        # Primal renders at other values or spp (eta +- h, result images), kept for the next
-        # job on the scene as the iteration's recording is.
-        self.images = ctx.shelf.get("frozen images") or dr.freeze(
-            _detached_images, warn_after=1000, auto_opaque=False)
-        ctx.shelf["frozen images"] = self.images
+        # structure -> (the iteration's frozen function, the detached renders': eta +- h,
+        # result images), least recently used first, as jobs before on this scene left them
+        self.kept: dict[tuple, tuple] = ctx.shelf.setdefault("frozen", {})
+        self.holder = ctx.shelf.setdefault("frozen holder", _Holder())
+        self.taken = bool(self.kept)  # a recording made by a job before may replay
+        # the scene's last structure and its functions, until this job's first call
+        self.structure = next(reversed(self.kept), None)
+        self.fn, self.images = self.kept.get(self.structure, (None, None))
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
         self.stale = False    # the leaves hold a gradient not (yet) carried on
         self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
         self.replayed = 0     # calls that replayed a recording (this job's or one taken)
         # sensor groups rendered since the scene was loaded (unfrozen, their first time)
         self.rendered: set[tuple[int, ...]] = set()
-        ctx.shelf["frozen"] = (self.fn, self.structure, self.holder)
 
     def leaf(self, key: str, value):
         """v as the scene holds it: detached, gradients on (the recording's input)."""
@@ -172,19 +175,33 @@ class FrozenLoss:
             + (["another integrator"] if integrator0 != integrator else [])
             + (["film size"] if films0 != films else []))
 
+    def _use(self) -> None:
+        """The frozen functions of the current structure: the scene's kept ones, else new;
+        kept in their turn, the least recently used beyond KEPT_STRUCTURES dropped."""
+        structure = self._structure()
+        if structure == self.structure and self.fn is not None:
+            return
+        for other in [s for s in self.kept if s[1] != structure[1]]:
+            # made with an integrator the scene no longer holds, whose id may come again
+            del self.kept[other]
+        fns = self.kept.pop(structure, None)
+        if self.structure is not None and structure != self.structure:
+            done = "replays its structure's recording" if fns else "recorded again"
+            self.ctx.note(f"frozen: iteration {self.ctx.iteration} {done} "
+                          f"({self._changed(structure)})")
+        self.kept[structure] = fns or (
+            dr.freeze(_group_loss, warn_after=1000, auto_opaque=False),
+            dr.freeze(_detached_images, warn_after=1000, auto_opaque=False))
+        while len(self.kept) > KEPT_STRUCTURES:
+            del self.kept[next(iter(self.kept))]
+        self.fn, self.images = self.kept[structure]
+        self.structure = structure
+
     def __call__(self, group: list[tuple[int, int]], divisor: float):
         """The loss of ``group`` ((slot, sensor) pairs) over ``divisor``, at this iteration's
         seeds and spp, its gradient on the leaves."""
         ctx = self.ctx
-        structure = self._structure()
-        if structure != self.structure:
-            if self.structure is not None:
-                ctx.note(f"frozen: iteration {ctx.iteration} recorded again "
-                         f"({self._changed(structure)})")
-                self.fn.clear()
-                self.images.clear()
-            self.structure = structure
-            self.ctx.shelf["frozen"] = (self.fn, structure, self.holder)
+        self._use()
         if self.stale:  # a loss taken without a step (the last iteration, a skipped one)
             for _, leaf in self.pairs.values():
                 dr.clear_grad(leaf)
@@ -234,6 +251,7 @@ class FrozenLoss:
         """``renders.render_images``, detached, replayed (a choice's renders at other values,
         a job's result images: set outside, the scene is an argument, read afresh at each
         replay); ``params`` unused (a detached render differentiates nothing)."""
+        self._use()
         before = self.images.n_recordings
         fresh_films(scene)
         out = call(self.images, scene, integrator, sensor, spp,

@@ -38,8 +38,8 @@ class Frozen(Choice):
 
     def _say(self) -> None:
         self.why = (f"not frozen: {self.reason}" if self.reason else
-                    "each sensor group's render, loss and backward pass recorded once (and "
-                    "again when the spp, integrator or film changes) and replayed, as are "
+                    "each sensor group's render, loss and backward pass recorded once per "
+                    "structure (spp, integrator, film size) and replayed, as are "
                     "eta's difference renders and the standard errors' passes: no Python "
                     "tracing per iteration")
 
@@ -49,7 +49,8 @@ class Frozen(Choice):
         group = frozen.FrozenLoss(ctx)
         if group.taken:
             self.why += ("; the scene's recording from a job before is taken over (replayed "
-                         "from iteration 0 when the spp, integrator and films are the same)")
+                         "from iteration 0 for a structure a job before ran: the same spp, "
+                         "integrator and films)")
         return group
 
     def notes(self) -> list[str]:
