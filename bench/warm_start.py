@@ -17,7 +17,9 @@ waiting for it (the LLVM backend runs kernels asynchronously). The fresh
 process is given a warm Dr.Jit kernel cache on disk (one run first, not counted), the
 best case for a script that has run before; one cold-cache run is shown for context. The
 daemon's time runs from CreateJob sent to the WatchJob event of iteration 0 received; the
-fresh process's from its start to the end of its first iteration. Rounds alternate.
+fresh process's from its start to the end of its first iteration. Rounds alternate. A last
+line times jobs that follow a job of another structure (another spp) on the scene, as users'
+jobs taking turns on a worker do: a scene keeps each structure's recordings.
 """
 
 from __future__ import annotations
@@ -108,6 +110,17 @@ def _size(settings: Settings, server: common.Daemon, res: int
         rows.append({"size": res, "round": r, "method": "fresh process", **t})
 
     common.alternate(rounds, daemon, fresh)
+    # Users' jobs of two structures taking turns on the scene: each job at SPP follows one at
+    # 2 SPP, and replays its own structure's recording if the scene kept it (engine/frozen.py).
+    other = common.wall_spec(scene, ref_blob, iterations=3, spp=2 * SPP)
+    turns: list[float] = []
+    for r in range(rounds):
+        for s in (other, spec):
+            run_ = common.run_job(client, s)
+            common.require_success(run_, "warm_start turns")
+        turns.append(run_.first_iteration)
+        rows.append({"size": res, "round": r, "method": f"daemon, after a job at {2 * SPP} spp",
+                     "total": run_.first_iteration, "first_iteration": run_.seconds[0]})
     ratio = common.median([f / d for f, d in zip(fresh_s, daemon_s)])
     fresh_rows = [r for r in rows if r["method"] == "fresh process"]
     parts = fresh_rows[-1]
@@ -120,6 +133,8 @@ def _size(settings: Settings, server: common.Daemon, res: int
         "in the worker (loading the scene and references, then iteration 0): "
         f"{ms([r['first_iteration'] for r in rows if r['method'] == 'daemon'])} ms; iteration 1"
         f" alone (a whole iteration, nothing loaded): {ms(steady)} ms",
+        f"- daemon, each job after one at {2 * SPP} spp on the scene (two structures taking "
+        f"turns), CreateJob to iteration 0 received: {ms(turns)} ms",
         f"- fresh process (warm kernel cache on disk): {common.spread(fresh_s, '{:.2f}')} s; "
         f"of the last: interpreter {parts['interpreter']:.2f} s, import mitsuba "
         f"{parts['import']:.2f} s, set variant {parts['variant']:.2f} s, load scene "
