@@ -140,13 +140,14 @@ class FrozenLoss:
     def __init__(self, ctx) -> None:
         self.ctx = ctx
         # structure -> (the iteration's frozen function, the detached renders': eta +- h,
-        # result images), least recently used first, as jobs before on this scene left them
+        # result images; the integrator, held so that its id, in the structure, is no other
+        # object's), least recently used first, as jobs before on this scene left them
         self.kept: dict[tuple, tuple] = ctx.shelf.setdefault("frozen", {})
         self.holder = ctx.shelf.setdefault("frozen holder", _Holder())
         self.taken = bool(self.kept)  # a recording made by a job before may replay
         # the scene's last structure and its functions, until this job's first call
         self.structure = next(reversed(self.kept), None)
-        self.fn, self.images = self.kept.get(self.structure, (None, None))
+        self.fn, self.images, _ = self.kept.get(self.structure, (None, None, None))
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
         self.stale = False    # the leaves hold a gradient not (yet) carried on
         self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
@@ -182,8 +183,7 @@ class FrozenLoss:
         if structure == self.structure and self.fn is not None:
             return
         for other in [s for s in self.kept if s[1] != structure[1]]:
-            # made with an integrator the scene no longer holds, whose id may come again
-            del self.kept[other]
+            del self.kept[other]  # made with an integrator the scene no longer holds
         fns = self.kept.pop(structure, None)
         if self.structure is not None and structure != self.structure:
             done = "replays its structure's recording" if fns else "recorded again"
@@ -191,10 +191,10 @@ class FrozenLoss:
                           f"({self._changed(structure)})")
         self.kept[structure] = fns or (
             dr.freeze(_group_loss, warn_after=1000, auto_opaque=False),
-            dr.freeze(_detached_images, warn_after=1000, auto_opaque=False))
+            dr.freeze(_detached_images, warn_after=1000, auto_opaque=False), self.ctx.integrator)
         while len(self.kept) > KEPT_STRUCTURES:
             del self.kept[next(iter(self.kept))]
-        self.fn, self.images = self.kept[structure]
+        self.fn, self.images, _ = self.kept[structure]
         self.structure = structure
 
     def __call__(self, group: list[tuple[int, int]], divisor: float):
