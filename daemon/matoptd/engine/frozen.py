@@ -126,6 +126,12 @@ def fresh_films(scene) -> None:
         sensor.film().prepare([])
 
 
+def freeze(fn):
+    """``fn`` frozen, every input opaque from the first recording on: what changes from call
+    to call is opaque already, and Dr.Jit would otherwise record again to find that out."""
+    return dr.freeze(fn, warn_after=1000, auto_opaque=False)
+
+
 def _detached_images(scene, integrator, sensor, spp, seeds):
     # No SceneParameters: a recording's key would hold the job's own (see _Holder), and a
     # detached render needs none.
@@ -145,9 +151,8 @@ class FrozenLoss:
         self.kept: dict[tuple, tuple] = ctx.shelf.setdefault("frozen", {})
         self.holder = ctx.shelf.setdefault("frozen holder", _Holder())
         self.taken = bool(self.kept)  # a recording made by a job before may replay
-        # the scene's last structure and its functions, until this job's first call
-        self.structure = next(reversed(self.kept), None)
-        self.fn, self.images, _ = self.kept.get(self.structure, (None, None, None))
+        self.structure = next(reversed(self.kept), None)  # the scene's last, for the notes
+        self.fn = self.images = None  # the structure's, from this job's first call (_use)
         self.pairs: dict[str, tuple[object, object]] = {}  # key -> (v, the scene's leaf)
         self.stale = False    # the leaves hold a gradient not (yet) carried on
         self.recordings = 0   # recordings made by this job (Dr.Jit's count, every structure)
@@ -180,7 +185,7 @@ class FrozenLoss:
         """The frozen functions of the current structure: the scene's kept ones, else new;
         kept in their turn, the least recently used beyond KEPT_STRUCTURES dropped."""
         structure = self._structure()
-        if structure == self.structure and self.fn is not None:
+        if self.fn is not None and structure == self.structure:
             return
         for other in [s for s in self.kept if s[1] != structure[1]]:
             del self.kept[other]  # made with an integrator the scene no longer holds
@@ -189,9 +194,8 @@ class FrozenLoss:
             done = "replays its structure's recording" if fns else "recorded again"
             self.ctx.note(f"frozen: iteration {self.ctx.iteration} {done} "
                           f"({self._changed(structure)})")
-        self.kept[structure] = fns or (
-            dr.freeze(_group_loss, warn_after=1000, auto_opaque=False),
-            dr.freeze(_detached_images, warn_after=1000, auto_opaque=False), self.ctx.integrator)
+        self.kept[structure] = fns or (freeze(_group_loss), freeze(_detached_images),
+                                       self.ctx.integrator)
         while len(self.kept) > KEPT_STRUCTURES:
             del self.kept[next(iter(self.kept))]
         self.fn, self.images, _ = self.kept[structure]

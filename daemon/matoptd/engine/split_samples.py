@@ -137,11 +137,8 @@ class Frozen:
     cannot be a frozen function's output); they are a small part of a pass."""
 
     def __init__(self) -> None:
-        # auto_opaque off: every value that changes from pass to pass is opaque already, and
-        # Dr.Jit would otherwise record each function twice to find that out
         self._primal, self._radiance, self._inside, self._forward = (
-            dr.freeze(f, warn_after=1000, auto_opaque=False)
-            for f in (_primal_pass, _radiance_pass, _inside_pass, _forward_pass))
+            frozen.freeze(f) for f in (_primal_pass, _radiance_pass, _inside_pass, _forward_pass))
         self.inside = True  # the tangents set inside the forward pass (until that fails)
 
     @property
