@@ -96,8 +96,9 @@ def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: i
             runs.append(rs.run_daemon(server, prep, CANDIDATE, rs.daemon_spec(
                 prep, seed, p.iterations, settings.with_choices)))
         print(f"bench: defaults_matrix {table.name} depth {depth} spp {spp} seed {seed}: "
-              + ", ".join(f"{r.method} {_worst(table, r):.4f}" for r in runs
-                          if r.seed == seed), flush=True)
+              + ", ".join(f"{r.method} {_worst(table, r):.4f} ("
+                          + " ".join(f"{k.split('.')[1]} {r.final[k]:.4f}" for k in table.targets)
+                          + ")" for r in runs if r.seed == seed), flush=True)
     return Cell(table.name, depth, spp, runs)
 
 

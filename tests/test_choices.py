@@ -312,5 +312,8 @@ def test_the_hold_restores_where_it_stood():
     again = EtaHold(settings)
     _set_up([again], settings, records, hold.state())
     assert again.released == 42 and "released at iteration 42" in again.why
+    # Released, eta's schedule decays from there; the medium's from the job's start.
+    assert records["obj.eta"].schedule_begin == 42
+    assert records["m.albedo.value.value"].schedule_begin == 0
     path = again.paths["m.albedo.value.value"]
     assert len(path.values) == WINDOW and path.rates == [0.03] * WINDOW

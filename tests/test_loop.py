@@ -43,10 +43,11 @@ def _references(optimize, scene) -> dict:
     return {0: optimize.Reference(mi.TensorXf(np.asarray(image)[..., :3]), None, "ref")}
 
 
-def _fakes(choices_module, calls: list[str]):
-    """Two fake choices: one holds GREEN's step for its first two iterations and counts (its
-    state), one scales RED's rate and adds nothing else; both log their hooks."""
-    Choice, HOLD = choices_module.Choice, choices_module.HOLD
+def _fakes(choices_module, calls: list[str], HOLD: str | None = None):
+    """Two fake choices: one holds GREEN's step (``HOLD``: HOLD unless given) for its first
+    two iterations and counts (its state), one scales RED's rate and adds nothing else; both
+    log their hooks."""
+    Choice, HOLD = choices_module.Choice, HOLD or choices_module.HOLD
 
     class Holder(Choice):
         name = "holder"
@@ -118,6 +119,53 @@ def test_hooks_run_in_order_see_their_own_records_and_their_returns_apply(engine
     # The rate hook's share: red steps at half its base rate (before the schedule's share).
     assert loop.records[RED].step_rate == pytest.approx(0.025)
     assert loop.records[GREEN].step_rate == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize("how, share", [("hold", 1.0), ("wait", 0.639)])
+def test_a_step_after_a_hold_is_adams_first_step_at_the_rate_and_after_waits_counted_less(
+        engine, how, share):
+    """Adam's first step moves each component by exactly its rate (m / sqrt(v) debiased is
+    g / |g|); held iterations are no steps, so green's first after two held ones is that too.
+    Waits are counted: debiased as a third step, 0.1 / sqrt(0.001) * sqrt(1 - 0.999^3) /
+    (1 - 0.9^3) = 0.639 of the rate."""
+    optimize, choices, _ = engine
+    Holder, Halver = _fakes(choices, [], {"hold": choices.HOLD, "wait": choices.WAIT}[how])
+    scene = _scene()
+    settings = _settings()
+    loop = optimize.Optimization(scene, settings, _references(optimize, scene),
+                                 [Holder(settings), Halver(settings)])
+    start = loop.records[GREEN].start.copy()
+    for _ in range(3):
+        loop.step()  # iterations 0 and 1 held, 2 steps green
+    rate = loop.rate(GREEN)  # iteration 2's: the base rate times the schedule's share
+    loop.step()
+    moved = np.abs(loop.progress.last.values[GREEN] - start)
+    np.testing.assert_allclose(moved, share * rate, rtol=1e-3)
+
+
+def test_a_variable_released_mid_job_steps_on_a_schedule_that_starts_at_its_release(engine):
+    """The cosine's share is 1 at a variable's schedule_begin and a tenth at the job's last
+    step; the others keep the job's own."""
+    optimize, choices, _ = engine
+    Holder, Halver = _fakes(choices, [])
+    scene = _scene()
+    settings = _settings(iterations=8)
+    loop = optimize.Optimization(scene, settings, _references(optimize, scene),
+                                 [Holder(settings), Halver(settings)])
+    for _ in range(2):
+        loop.step()
+    loop.records[GREEN].schedule_begin = 2
+    shares = []
+    for i in range(2, 7):  # the steps taken (the last iteration takes none)
+        loop.step()
+        shares.append((loop.rate(GREEN) / loop.records[GREEN].step_rate,
+                       loop.rate(RED) / loop.records[RED].step_rate))
+    green, red = zip(*shares)
+    assert green[0] == pytest.approx(1.0) and red[0] == pytest.approx(0.1 + 0.45 * 1.62349)
+    assert green == pytest.approx([optimize.schedule_factor(settings, i, 2) for i in range(2, 7)])
+    assert red == pytest.approx([optimize.schedule_factor(settings, i) for i in range(2, 7)])
+    assert optimize.schedule_factor(settings, 7, 2) == pytest.approx(0.1)
+    assert all(g > r for g, r in zip(green, red))
 
 
 def test_a_choices_state_and_the_loop_survive_a_checkpoint(engine):

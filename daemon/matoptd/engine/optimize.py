@@ -50,7 +50,7 @@ from ..truth import parameter_error
 from . import checkpoint as codec
 from . import integrator, parameters
 from .checkpoint import CheckpointError
-from .choices import HOLD, Choice, build
+from .choices import HOLD, WAIT, Choice, build
 from .context import Context
 from .diagnosis import Kept
 from .guards import Guards
@@ -63,13 +63,16 @@ from .renders import Reference, Renders
 __all__ = ["Best", "CheckpointError", "Optimization", "Reference", "Step", "schedule_factor"]
 
 
-def schedule_factor(settings: api.JobSettings, i: int) -> float:
-    """The share of each base rate at step i: a half cosine from 1 to a tenth over the job,
-    lr_i = lr * (0.1 + 0.9 * (1 + cos(pi * i / (N - 1))) / 2), or 1 throughout (constant)."""
-    n = settings.iterations
+def schedule_factor(settings: api.JobSettings, i: int, begin: int = 0) -> float:
+    """The share of each base rate at step i: a half cosine from 1 to a tenth over the job's
+    steps from ``begin`` (a variable's ``schedule_begin``) on, or 1 throughout (constant):
+
+        lr_i = lr * (0.1 + 0.9 * (1 + cos(pi * (i - b) / (N - 1 - b))) / 2)
+    """
+    n = settings.iterations - begin
     if settings.schedule != "cosine" or n < 2:
         return 1.0
-    return 0.1 + 0.45 * (1.0 + math.cos(math.pi * i / (n - 1)))
+    return 0.1 + 0.45 * (1.0 + math.cos(math.pi * min(max(i - begin, 0), n - 1) / (n - 1)))
 
 
 class Optimization:
@@ -101,7 +104,7 @@ class Optimization:
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         self.progress = Progress()
         self.initial: dict[str, np.ndarray] = {}
-        self.factor = 1.0
+        self.factor = 1.0  # the schedule's share at this step, for a variable from step 0
         self.guards = Guards()
         self.said: list[str] = []  # notes said during the job (reported at its end)
         self.group = None  # a choice's stand-in for the renders and backward pass (frozen)
@@ -153,7 +156,9 @@ class Optimization:
 
     def rate(self, key: str) -> float:
         """The rate of ``key`` at this step (its step rate times the schedule's share)."""
-        return self.records[key].step_rate * self.factor
+        r = self.records[key]
+        return r.step_rate * (schedule_factor(self.settings, self.ctx.iteration, r.schedule_begin)
+                              if r.schedule_begin else self.factor)
 
     def _apply(self) -> None:
         params = self.renders.params
@@ -290,16 +295,20 @@ class Optimization:
         self.opt.set_learning_rate({k: self.rate(k) for k in self.records})
         self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
-        ctx.sensors, ctx.held = sensors, set()
+        ctx.sensors, ctx.held, uncounted = sensors, set(), set()
         for c in self.hooks.by_hook["on_gradient"]:
             for key, grad in self.hooks.timed(c, "seconds", c.on_gradient, ctx).items():
-                dr.set_grad(self.opt[key], 0.0 if grad is HOLD else grad)
-                if grad is HOLD:
+                waits = grad is HOLD or grad is WAIT
+                dr.set_grad(self.opt[key], 0.0 if waits else grad)
+                if waits:
                     ctx.held.add(key)
+                if grad is HOLD:
+                    uncounted.add(key)
         self.guards.sanitize(self.opt, self.records, ctx.held)
         for key in ctx.held:
             self.records[key].held.append(i)
         self.opt.step()
+        _uncount(self.opt, uncounted)
         self.guards.clip(self.opt, self.records)
         self._apply()
 
@@ -350,3 +359,14 @@ def _records(params: mi.SceneParameters, settings: api.JobSettings,
             shape=tuple(int(n) for n in value.shape) if tensor else (),
             truth=truth.get(p.key))
     return out
+
+
+def _uncount(opt: mi.ad.Adam, held: set[str]) -> None:
+    """A held step is no step: Adam's count t goes back to what it was. Dr.Jit's mask leaves a
+    zero-gradient parameter's m and v alone but counts t, and the debiasing
+    sqrt(1 - b2^t) / (1 - b1^t) then reads k real steps as t: after a hold of n iterations
+    the steps run at up to sqrt((n + k) / k) times the rate (eta after its hold: 1.4-7x).
+    A step that WAITs keeps that count on purpose (eta's sparse differences)."""
+    for key in held:
+        value, promoted, lr, (t, *moments) = opt.state[key]
+        opt.state[key] = (value, promoted, lr, (t - 1, *moments))

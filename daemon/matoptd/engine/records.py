@@ -35,6 +35,8 @@ class ParamRecord:
     current     theta_i's v once the loop has read it
     held        iterations whose step a choice held (no step taken; its gradient not the
                 images')
+    schedule_begin  the step the rate schedule's decay starts from (0: the job's first; a
+                choice that releases a variable mid-job restarts it there: eta_hold)
     gradients   the latent gradient of each recent step (small variables only; NaN: held)
     means       v's mean per iteration (variables too large for the iteration records)
     """
@@ -57,6 +59,7 @@ class ParamRecord:
     step_rate: float = 0.0
     current: np.ndarray | None = None
     held: list[int] = field(default_factory=list)
+    schedule_begin: int = 0
     gradients: list[np.ndarray] = field(default_factory=list)
     means: list[float] = field(default_factory=list)
 

@@ -325,13 +325,13 @@ def _adam(opt: Optimization, kept: Best) -> dict[str, Adam]:
     c = opt.settings
     sensors = len(opt.renders.references)
     per = sensors if c.sensor_mode == "step_per_sensor" and sensors > 1 else 1
-    schedule = [schedule_factor(c, i) for i in range(max(kept.iteration, 0))]
     out = {}
     for key, r in opt.records.items():
         _, _, _, (t, _, v, _) = opt.opt.state[key]
         rate, recorded = r.step_rate, r.gradients
         held = set(r.held)  # a held step moved nothing
-        factors = np.repeat([0.0 if i in held else f for i, f in enumerate(schedule)], per)
+        factors = np.repeat([0.0 if i in held else schedule_factor(c, i, r.schedule_begin)
+                             for i in range(max(kept.iteration, 0))], per)
         out[key] = Adam(np.asarray(v, dtype=np.float64).ravel(),
                         int(np.asarray(t).ravel()[0]), rate * factors,
                         np.array([np.ravel(g) for g in recorded]) if recorded else None)

@@ -21,7 +21,11 @@ iteration's recording and the two renders replay one of their own (engine/frozen
 set outside it on the scene it reads. Once eta
 has settled (settling.py: over the last WINDOW iterations it netted less than SETTLED of the
 steps its rate allowed), the difference is taken, and eta stepped, only every EVERY-th
-iteration; should eta move steadily again, at every one.
+iteration; should eta move steadily again, at every one. The iterations between WAIT: Adam
+counts them as steps, and its debiasing, reading v as older than it is, makes the steps taken
+larger (about sqrt(t / k): 1.2-1.4x late in a job). On Table 2 at max_depth 8, spp 8, eta's
+steps without that (HOLD, Adam's count kept) ended with a worst gated error of 2.2% against
+1.2% (medians of 16 seeds, docs/benchmarks-history.md, 2026-11-29).
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ import numpy as np
 
 from ...settings import differences
 from .. import parameters
-from .base import HOLD, Choice
+from .base import WAIT, Choice
 from .settling import Path
 
 # By default the sides take a quarter of the job's spp (settings.DIFFERENCE_SPP): both share
@@ -104,7 +108,7 @@ class EtaDifferences(Choice):
                 continue  # held, or the AD gradient stands
             if path.settled() and i % EVERY:
                 path.add(ctx.latent(key), 0.0)
-                out[key] = HOLD  # no step without its difference
+                out[key] = WAIT  # no step without its difference; Adam counts it
                 self.sparse += 1
                 self._say()
                 continue

@@ -4,11 +4,15 @@ Far from the truth, the images ask eta for what the medium cannot give yet: on t
 Table 4 scene (a rough dielectric around a homogeneous medium, started at albedo 0.01, sigma_t
 0.99, alpha 0.98) eta ran from 1.55 to 1.70 in the first 20 iterations, its Fresnel reflection
 standing in for the light a black medium did not scatter, and came back only slowly (final eta
-5-9% off over three seeds). Eta is therefore held (its gradient zeroed: Adam, with
-``mask_updates``, then leaves it and its moments alone) while a selected medium property or
-the microfacet width beside eta still moves steadily (settling.py: over the last WINDOW
+5-9% off over three seeds). Eta is therefore held (no step: Adam leaves its value, moments
+and step count alone, optimize._uncount) while a selected medium property or the microfacet
+width beside eta still moves steadily (settling.py: over the last WINDOW
 iterations it netted SETTLED or more of the steps its rate allowed). It is never held past
-HOLD_SHARE of the job.
+HOLD_SHARE of the job. Released, eta has its whole way to go in what is left of the job, so
+its rate schedule's decay starts over from the release (``ParamRecord.schedule_begin``). On
+Table 4 at max_depth 8, spp 8 (8 seeds, docs/benchmarks-history.md, 2026-11-29) the job's own
+decay left eta's late steps at a tenth to a half of its rate, too small for its noisy
+gradient to carry it: the median worst gated error was 9.6% that way and 5.6% restarted.
 
 Only with a medium selected: without one, holding eta lets the others take up its error
 instead. On the Table 3 kind (glass over a texture, eta from 1.64) eta held 15 iterations
@@ -47,6 +51,8 @@ class EtaHold(Choice):
         self.applies = bool(self.etas and self.others)
         saved = state.get("released") if state else None
         self.released = int(saved[0]) if saved is not None else -1  # the iteration; -1: held
+        self.records = [records[k] for k in self.etas]
+        self._restart()
         self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.others)}
         self.last = max(1, round(HOLD_SHARE * ctx.settings.iterations))
         self.why = (f"{', '.join(self.etas)} held at its start until "
@@ -66,10 +72,16 @@ class EtaHold(Choice):
             path.add(ctx.latent(key), ctx.rate(key))
         if all(p.settled() for p in self.paths.values()) or i >= self.last:
             self.released = i
+            self._restart()
             self.why += (f"; released at iteration {i} ("
                          + ("the others settled)" if i < self.last else "the hold's limit)"))
             return {}
         return dict.fromkeys(self.etas, HOLD)
+
+    def _restart(self) -> None:
+        # Released, eta has its whole way still to go: the schedule's decay runs from here
+        for r in self.records:
+            r.schedule_begin = max(self.released, 0)
 
     def state(self):
         out = {"released": np.array([self.released], np.int64)}
