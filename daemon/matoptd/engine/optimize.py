@@ -104,7 +104,6 @@ class Optimization:
         self.opt = mi.ad.Adam(lr=parameters.DEFAULT_LEARNING_RATE, mask_updates=True)
         self.progress = Progress()
         self.initial: dict[str, np.ndarray] = {}
-        self.factor = 1.0  # the schedule's share at this step, for a variable from step 0
         self.guards = Guards()
         self.said: list[str] = []  # notes said during the job (reported at its end)
         self.group = None  # a choice's stand-in for the renders and backward pass (frozen)
@@ -157,8 +156,7 @@ class Optimization:
     def rate(self, key: str) -> float:
         """The rate of ``key`` at this step (its step rate times the schedule's share)."""
         r = self.records[key]
-        return r.step_rate * (schedule_factor(self.settings, self.ctx.iteration, r.schedule_begin)
-                              if r.schedule_begin else self.factor)
+        return r.step_rate * schedule_factor(self.settings, self.ctx.iteration, r.schedule_begin)
 
     def _apply(self) -> None:
         params = self.renders.params
@@ -291,7 +289,6 @@ class Optimization:
         if not math.isfinite(loss):
             self.progress.skipped_steps += 1
             return
-        self.factor = schedule_factor(self.settings, i)
         self.opt.set_learning_rate({k: self.rate(k) for k in self.records})
         self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
