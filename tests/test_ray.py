@@ -131,7 +131,10 @@ def test_jobs_of_two_users_spread_across_nodes(service):
 def test_a_node_that_leaves_sends_its_job_elsewhere_from_its_checkpoint(service, cluster):
     _, alice, bob = service
     job = wall_job(alice, 120)
-    running = wait_iteration(alice, job.name, 25)  # past its first checkpoint (10 its, 2 s)
+    seen = wait_iteration(alice, job.name, 25)
+    # A checkpoint is written after the step that crossed iteration 10, before the next one's
+    # iterations show: one more shown step means one is kept.
+    running = wait_iteration(alice, job.name, seen.iteration + 1)
     node = next(w.node for w in workers(alice) if w.name == running.worker)
     cluster.remove_node(next(n for n in cluster.worker_nodes if n.node_id == node))
 
