@@ -43,7 +43,7 @@ from common import Result, Settings, Target  # noqa: E402
 CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
          "grids", "tutorials", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
-         "thesis_tables", "starts", "real_scenes", "defaults_matrix", "calibration"]
+         "thesis_tables", "starts", "real_scenes", "defaults_matrix", "information", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"
 HISTORY = DOCS.with_name("benchmarks-history.md")  # by hand: a full run never writes it
 # Cases no longer run, and why: the summary says so, so that a reader of an older report

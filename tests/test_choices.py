@@ -273,7 +273,7 @@ def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
         # on a replayed recording is up to ~20 of them; 60 leave room on a loaded machine.
         assert 60 <= at < 120
         # ... and after eta went sparse (else the comparison proves nothing)
-        sparse = re.search(r"(\d+) iterations without it", next(
+        sparse = re.search(r"(\d+) iterations on the kept mean", next(
             c.why for c in at_pause.choices if c.name == "eta_differences"))
         assert sparse and int(sparse.group(1)) >= 1, at_pause.choices
         own.jobs.ResumeJob(pb.ResumeJobRequest(name=paused.name))
@@ -285,7 +285,7 @@ def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
             np.testing.assert_allclose([field(r) for r in runs[1]],
                                        [field(r) for r in runs[0]], rtol=2e-5)
         # Both skipped the same differences in all.
-        skipped = [re.search(r"(\d+) iterations without it", next(
+        skipped = [re.search(r"(\d+) iterations on the kept mean", next(
             c.why for c in j.choices if c.name == "eta_differences")) for j in (whole, done)]
         assert skipped[0] and int(skipped[0].group(1)) >= 3
         assert skipped[1] and skipped[1].group(1) == skipped[0].group(1)

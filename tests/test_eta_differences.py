@@ -1,13 +1,18 @@
 """When a dielectric's eta gets its gradient by central differences instead of prb's AD: only
 near the specular limit, where prb's detached refraction sampling leaves the AD gradient with
-a random sign. Pure logic on the parameter keys and values; the jobs that rely on it are in
+a random sign; and the difference kept once eta settles. Pure logic on the parameter keys and
+values and on a stand-in for the job's renders; the jobs that rely on it are in
 tests/test_thesis_tables.py."""
 
 from __future__ import annotations
 
+import contextlib
+
+import mitsuba as mi
 import numpy as np
 import pytest
 
+from matoptd.engine.choices import eta_differences
 from matoptd.engine.parameters import microfacet_alpha, microfacet_widths, near_specular
 from matoptd.settings import SPECULAR_ALPHA, Differences, differences
 
@@ -65,3 +70,50 @@ def test_a_value_outside_the_grammar_is_refused_saying_what_it_may_be(value):
     with pytest.raises(ValueError, match=f"cannot be '{value}': give on, off, quarter or "
                                          r"full, optionally with :ALPHA"):
         differences(value)
+
+
+class _Sides:
+    """What ``_difference`` reads of a job's context: eta set to a side, and that side's
+    render, here 10 eta + the draw's noise: h D = (I(eta + h) - I(eta - h)) / 2 = 10 h + the
+    noises' half difference."""
+
+    def __init__(self, noises):
+        self.noises, self.eta, self.sensors = iter(noises), 0.0, [(0, 0)]
+
+    @contextlib.contextmanager
+    def holding(self, values):
+        self.eta = float(values["eta"][0])
+        yield
+
+    def sensor_images(self, n, sensor, draw, spp):
+        return [mi.TensorXf(np.full((1, 1, 1), 10 * self.eta + next(self.noises), np.float32))]
+
+
+def _kept(choice) -> float:
+    return float(np.array(choice.kept["eta"][0][0]).ravel()[0])
+
+
+def test_once_eta_settles_its_difference_is_the_mean_of_the_last_kept_while_it_moves_the_newest():
+    """D's noise is most of the slope's: once eta has settled, D is the mean of the last KEPT
+    differences; while eta moves, J moves with it and the newest difference stands alone."""
+    mi.set_variant("llvm_ad_rgb")
+    step = eta_differences.STEP
+    choice = eta_differences.EtaDifferences.__new__(eta_differences.EtaDifferences)
+    choice.kept, choice.taken = {"eta": {}}, {"eta": {}}
+    # noise -e on the lower side, +e on the upper: h D = 10 h + e
+    errors = [0.3, -0.1, 0.2, -0.4]
+    sides = _Sides([x for e in errors for x in (-e, e)])
+    choice._difference(sides, "eta", 1.5 - step, 1.5 + step, 2, settled=False)
+    assert _kept(choice) == pytest.approx(10 * step + 0.3, abs=1e-5)
+    choice._difference(sides, "eta", 1.5 - step, 1.5 + step, 2, settled=False)
+    assert _kept(choice) == pytest.approx(10 * step - 0.1, abs=1e-5)  # the newest alone
+    for _ in range(2):
+        choice._difference(sides, "eta", 1.5 - step, 1.5 + step, 2, settled=True)
+    # settled: the mean of the differences since, the first of them the newest before it
+    assert _kept(choice) == pytest.approx(10 * step + (-0.1 + 0.2 - 0.4) / 3, abs=1e-5)
+    many = _Sides([x for _ in range(3 * eta_differences.KEPT) for x in (0.0, 0.0)])
+    for _ in range(3 * eta_differences.KEPT):
+        choice._difference(many, "eta", 1.5 - step, 1.5 + step, 2, settled=True)
+    # the old noises fade: of the last KEPT only (an exponential mean that long)
+    assert abs(_kept(choice) - 10 * step) < 0.3 * (1 - 1 / eta_differences.KEPT) ** (
+        2 * eta_differences.KEPT)

@@ -50,7 +50,7 @@ from ..truth import parameter_error
 from . import checkpoint as codec
 from . import integrator, parameters
 from .checkpoint import CheckpointError
-from .choices import HOLD, WAIT, Choice, build
+from .choices import HOLD, Choice, build
 from .context import Context
 from .diagnosis import Kept
 from .guards import Guards
@@ -292,20 +292,17 @@ class Optimization:
         self.opt.set_learning_rate({k: self.rate(k) for k in self.records})
         self.group.backward(extra) if self.group else dr.backward(total + extra)
         ctx = self.ctx
-        ctx.sensors, ctx.held, uncounted = sensors, set(), set()
+        ctx.sensors, ctx.held = sensors, set()
         for c in self.hooks.by_hook["on_gradient"]:
             for key, grad in self.hooks.timed(c, "seconds", c.on_gradient, ctx).items():
-                waits = grad is HOLD or grad is WAIT
-                dr.set_grad(self.opt[key], 0.0 if waits else grad)
-                if waits:
-                    ctx.held.add(key)
+                dr.set_grad(self.opt[key], 0.0 if grad is HOLD else grad)
                 if grad is HOLD:
-                    uncounted.add(key)
+                    ctx.held.add(key)
         self.guards.sanitize(self.opt, self.records, ctx.held)
         for key in ctx.held:
             self.records[key].held.append(i)
         self.opt.step()
-        _uncount(self.opt, uncounted)
+        _uncount(self.opt, ctx.held)
         self.guards.clip(self.opt, self.records)
         self._apply()
 
@@ -362,8 +359,7 @@ def _uncount(opt: mi.ad.Adam, held: set[str]) -> None:
     """A held step is no step: Adam's count t goes back to what it was. Dr.Jit's mask leaves a
     zero-gradient parameter's m and v alone but counts t, and the debiasing
     sqrt(1 - b2^t) / (1 - b1^t) then reads k real steps as t: after a hold of n iterations
-    the steps run at up to sqrt((n + k) / k) times the rate (eta after its hold: 1.4-7x).
-    A step that WAITs keeps that count on purpose (eta's sparse differences)."""
+    the steps run at up to sqrt((n + k) / k) times the rate (eta after its hold: 1.4-7x)."""
     for key in held:
         value, promoted, lr, (t, *moments) = opt.state[key]
         opt.state[key] = (value, promoted, lr, (t - 1, *moments))

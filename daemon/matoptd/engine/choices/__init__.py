@@ -14,7 +14,7 @@ comes last: it begins once the others have said what they do to the renders.
 from __future__ import annotations
 
 from ...settings import CHOICES, JobSettings
-from .base import (HOLD, WAIT, Begun, Choice, ConflictError, State, assign_keys,
+from .base import (HOLD, Begun, Choice, ConflictError, State, assign_keys,
                    check_declarations, overrides)
 from .black_start import BlackStart
 from .depth import Depth
@@ -45,5 +45,5 @@ def build(settings: JobSettings) -> list[Choice]:
     return [c(settings) for c in REGISTRY]
 
 
-__all__ = ["HOLD", "WAIT", "Begun", "Choice", "ConflictError", "State", "Loading", "REGISTRY",
+__all__ = ["HOLD", "Begun", "Choice", "ConflictError", "State", "Loading", "REGISTRY",
            "assign_keys", "build", "overrides"]

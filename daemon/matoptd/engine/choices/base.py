@@ -13,7 +13,7 @@ return what they change; the loop applies it. The loop, per iteration i::
         L += loss(images, reference)
     L_step = L + sum(on_loss(ctx))                # terms that steer the step only (smoothness)
     backward(L_step)
-    gradients = on_gradient(ctx)                  # {key: gradient, HOLD, WAIT}: eta by differences
+    gradients = on_gradient(ctx)                  # {key: gradient or HOLD}: eta by differences
     (the loop's guards: non-finite components zeroed)
     Adam step, each u clipped to its bounds
 
@@ -50,9 +50,6 @@ if TYPE_CHECKING:  # annotations only
 
 State = dict[str, np.ndarray]
 HOLD = "hold"  # on_gradient's value for a key whose step is held (no step, Adam's state kept)
-# ... for a key whose step waits: no step, but Adam counts it (its t advances), and the next
-# steps' debiasing reads v as older than it is: larger steps, as if for the ones skipped
-WAIT = "wait"
 
 
 @dataclass
@@ -173,7 +170,7 @@ class Choice:
 
     def on_gradient(self, ctx: Context) -> dict[str, object]:
         """After the backward pass of ``ctx.sensors``, before the guards and the step: the
-        gradients it sets (a Dr.Jit value), or HOLD or WAIT for a step not taken, by key."""
+        gradients it sets (a Dr.Jit value), or HOLD for a step not taken, by key."""
         return {}
 
     # -- state -----------------------------------------------------------------------------

@@ -1,0 +1,216 @@
+"""How closely a job's images decide the gated parameters: the floor under defaults_matrix.
+
+A cell of bench/defaults_matrix.py is judged against a gate (Table 2: 1%, Table 4: 2%). Whether
+a gate is the optimizer's to meet or beyond what the images say is a question of the images
+alone, answered here with Mitsuba and no daemon. At the truth theta*, a least-squares fit to an
+image I of S samples per pixel moves by
+
+    d theta = (J^T J)^-1 J^T e,     Cov = (J^T J)^-1 (J^T Sigma_S J) (J^T J)^-1
+
+(e the image's noise, Sigma_S its covariance, J = dI/dtheta): the spread of the best any
+estimator minimizing the job's loss can do with those samples, to first order. For a job the
+samples are its iterations' (iterations x spp) and the reference's (REF_SPP), whose noise
+adds: Sigma = Sigma_1 (1 / (iterations spp) + 1 / REF_SPP) per sample.
+
+J: central differences of renders sharing their samples (the scene's own primal integrator,
+STEPS apart), twice with independent samples (A, B); J^T J from the products across the two,
+so J's own noise does not inflate it (a product of one estimate with itself came out 3-18 times
+larger for sigma_t, alpha and eta at 512 spp). J^T Sigma J: NOISE_RENDERS renders at the job's
+spp at the truth, their deviations from their mean projected on both estimates, likewise
+across, block by block (BLOCK): the noise correlated within a block, as the scenes' Gaussian
+filter makes neighbouring pixels, and not across.
+The principled roughness at Table 2's truth shows alpha at its floor (0.001), where the image
+does not change with it: it is taken as known.
+
+Reported per cell: each gated parameter's spread (one standard deviation, relative to the
+truth) from one render and from the job's renders, and the median over Gaussian draws of the
+worst gated error of such a fit: the least error a job of the cell's budget can expect, beside
+the table's gate and the defaults' median in the matrix (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+import common
+import plain
+import real_scenes as rs
+from common import Result, Settings, Target
+from defaults_matrix import cells
+
+NEEDS_DAEMON = False
+JSPP = 512                  # samples per pixel of each side of J's differences
+NOISE_RENDERS = 48          # renders at the job's spp for J^T Sigma J
+ITERATIONS = 100            # a job's, as in the matrix
+DRAWS = 20_000              # Gaussian draws for the median worst error
+# Render noise is correlated within a few pixels (the scenes' Gaussian filter): J^T Sigma J
+# is summed over blocks of BLOCK x BLOCK pixels, the noise correlated within them. On Table 2
+# at max_depth 8 blocks of 16 agreed with the whole image's projection within 15% (4: 20-25%;
+# one pixel alone, Sigma's diagonal: 1.7-5.4 times too little).
+BLOCK = 16
+# Differences' half steps: wide enough that a path's changed free flights and refractions do
+# not bury the difference in noise (sigma_t at 0.008 did, at 0.04 it did not), small enough
+# that the image stays linear over them.
+STEPS = {"alpha": 0.005, "albedo": 0.01, "sigma_t": 0.04, "eta": 0.01, "base_color": 0.01,
+         "spec_trans": 0.01}
+PRIMAL = {"prb": "path", "prbvolpath": "volpath"}  # the same image without AD's bookkeeping
+
+
+def _short(key: str) -> str:
+    return key.split(".")[1]
+
+
+def components(table: rs.Table) -> list[tuple[str, int]]:
+    """(key, channel) of every component fitted: the table's truth but a width at its floor."""
+    return [(k, c) for k, v in table.truth.items() if not k.endswith("roughness.value")
+            for c in range(len(v))]
+
+
+class Images:
+    """The table's scene at its truth, at one depth, rendered at chosen values and samples."""
+
+    def __init__(self, mi, table: rs.Table, xml: Path, depth: int, film: tuple[int, int]):
+        self.mi, self.table = mi, table
+        self.scene = mi.load_file(str(xml), integrator=PRIMAL[table.integrator],
+                                  max_depth=depth, resx=film[0], resy=film[1])
+        self.params = mi.traverse(self.scene)
+
+    def render(self, values: dict[str, list[float]], spp: int, seed: int) -> np.ndarray:
+        mi = self.mi
+        for key, v in values.items():
+            self.params[key] = (v[0] if key.endswith("eta") else mi.Float(v[0]) if len(v) == 1
+                                else mi.Color3f(*v))
+        self.params.update()
+        return np.array(mi.render(self.scene, spp=spp, seed=seed), dtype=np.float64).ravel()
+
+    def jacobian(self, seed: int) -> np.ndarray:
+        """J's columns by central differences, each pair of sides on the same samples."""
+        columns = []
+        for i, (key, c) in enumerate(components(self.table)):
+            h = STEPS[_short(key)]
+            up = {k: list(v) for k, v in self.table.truth.items()}
+            down = {k: list(v) for k, v in self.table.truth.items()}
+            up[key][c] += h
+            down[key][c] -= h
+            s = seed + 7 * i
+            columns.append((self.render(up, JSPP, s) - self.render(down, JSPP, s)) / (2 * h))
+        return np.stack(columns, 1)
+
+
+def spread(ja: np.ndarray, jb: np.ndarray, noise: np.ndarray, blocks: np.ndarray
+           ) -> np.ndarray:
+    """Cov of the least-squares fit to one render whose deviations from the mean are the rows
+    of ``noise``: the sandwich, both of its factors from products across J's two estimates.
+    J^T Sigma J is summed over ``blocks`` (a block id per pixel-channel), the noise taken as
+    correlated within a block and not across: projected on the whole image, the products of
+    J's noise with the renders' left its diagonal negative on Table 4 at max_depth 64."""
+    jtj = 0.5 * (ja.T @ jb + jb.T @ ja)
+    meat = np.zeros_like(jtj)
+    for b in np.unique(blocks):
+        rows = blocks == b
+        ga, gb = noise[:, rows] @ ja[rows], noise[:, rows] @ jb[rows]
+        meat += 0.5 * (ga.T @ gb + gb.T @ ga) / len(noise)
+    h = np.linalg.inv(jtj)
+    return h @ meat @ h
+
+
+def image_blocks(film: tuple[int, int], size: int = BLOCK) -> np.ndarray:
+    """The block id of each pixel-channel of a film's image (rows, then columns, then RGB)."""
+    w, h = film
+    ids = (np.arange(h)[:, None] // size) * (-(-w // size)) + np.arange(w)[None, :] // size
+    return np.repeat(ids.ravel(), 3)
+
+
+def worst_median(cov: np.ndarray, truth: np.ndarray, gated: np.ndarray, seed: int = 0) -> float:
+    """Median over Gaussian draws of the fit of the worst gated parameter's relative error
+    (a colour's as defaults_matrix takes it: rms over its channels)."""
+    rng = np.random.default_rng(seed)
+    w, v = np.linalg.eigh(cov)
+    draws = rng.standard_normal((DRAWS, len(w))) @ (v * np.sqrt(np.maximum(w, 0))).T
+    errors = []
+    for members in gated:
+        d, t = draws[:, members], truth[members]
+        errors.append(np.sqrt(np.mean(d ** 2, 1)) / np.sqrt(np.mean(t ** 2)))
+    return float(np.median(np.max(np.stack(errors, 1), 1)))
+
+
+def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
+            film: tuple[int, int]) -> list[dict]:
+    images = Images(mi, table, xml, depth, film)
+    comps = components(table)
+    truth = np.array([table.truth[k][c] for k, c in comps])
+    gated = [np.array([i for i, (k, _) in enumerate(comps) if k == g]) for g in table.targets]
+    began = time.perf_counter()
+    ja, jb = images.jacobian(1000), images.jacobian(5000)
+    j_seconds = time.perf_counter() - began
+    rows = []
+    for spp in spps:
+        renders = np.stack([images.render(table.truth, spp, 90_000 + i)
+                            for i in range(NOISE_RENDERS)])
+        noise = (renders - renders.mean(0)) * np.sqrt(NOISE_RENDERS / (NOISE_RENDERS - 1))
+        one = spread(ja, jb, noise, image_blocks(film))
+        # one render's spp samples; the job's ITERATIONS * spp and the reference's add
+        job = one * (1 / ITERATIONS + spp / rs.REF_SPP)
+        row = {"table": table.name, "max_depth": depth, "spp": spp, "gate": table.gate,
+               "j_seconds": round(j_seconds, 1)}
+        for label, cov in (("one render", one), ("job", job)):
+            for g, members in zip(table.targets, gated):
+                sd = np.sqrt(np.maximum(np.diag(cov)[members], 0.0))
+                row[f"{_short(g)}, {label}"] = float(np.sqrt(np.mean(sd ** 2))
+                                                     / np.sqrt(np.mean(truth[members] ** 2)))
+            row[f"worst, {label}"] = worst_median(cov, truth, gated)
+        rows.append(row)
+        print(f"bench: information {table.name} depth {depth} spp {spp}: "
+              + ", ".join(f"{k} {100 * v:.2f}%" for k, v in row.items()
+                          if isinstance(v, float) and k not in ("gate", "j_seconds")),
+              flush=True)
+    return rows
+
+
+def run(settings: Settings, server: object) -> Result:
+    result = Result("information", "What a job's images decide: the floor under the matrix")
+    if settings.thesis_repo is None:
+        result.targets.append(rs.NO_REPO)
+        return result
+    variant = settings.variant or "llvm_ad_rgb"
+    mi = plain.mitsuba(variant)
+    film = settings.film or ((64, 48) if settings.quick else (128, 96))
+    chosen = cells(settings)
+    rows: list[dict] = []
+    for name, depth in dict.fromkeys((t.name, d) for t, d, _ in chosen):
+        table = next(t for t, _, _ in chosen if t.name == name)
+        xml = rs.loadable(settings.thesis_repo / table.path, settings.thesis_repo,
+                          settings.work / "information" / f"{table.name}.xml")
+        spps = [s for t, d, s in chosen if (t.name, d) == (name, depth)]
+        # an unbounded depth as the daemon's ``depth`` choice cuts it (Table 2's own)
+        rows += measure(mi, table, xml, depth if depth > 0 else 12, spps, film)
+    result.lines.append(
+        f"{variant}, film {film[0]}x{film[1]}; J by central differences at {JSPP} spp a side, "
+        f"twice; the noise of {NOISE_RENDERS} renders at each spp at the truth; a job: "
+        f"{ITERATIONS} iterations at the cell's spp and a {rs.REF_SPP}-spp reference. "
+        "Spread: one standard deviation of the least-squares fit, relative to the truth "
+        "(a colour's rms over its channels); worst: the median over draws of the fit of the "
+        "worst gated parameter's error, as the matrix takes it.")
+    result.lines.append("")
+    result.lines.append("| table | max_depth | spp | gate | spread, one render | spread, the job's "
+                        "renders | worst, one render | worst, the job's renders |")
+    result.lines.append("|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        table = next(t for t in rs.TABLES if t.name == row["table"])
+        names = [_short(g) for g in table.targets]
+        result.lines.append(
+            f"| {row['table']} | {row['max_depth']} | {row['spp']} | {100 * row['gate']:.0f}% | "
+            + ", ".join(f"{n} {100 * row[f'{n}, one render']:.2f}%" for n in names) + " | "
+            + ", ".join(f"{n} {100 * row[f'{n}, job']:.2f}%" for n in names) + " | "
+            + f"{100 * row['worst, one render']:.2f}% | {100 * row['worst, job']:.2f}% |")
+        result.targets.append(Target(
+            f"{row['table']} max_depth {row['max_depth']} spp {row['spp']}: the median worst "
+            "gated error of a least-squares fit to the job's renders (context: the floor under "
+            "the matrix's cell)",
+            f"{100 * row['worst, job']:.2f}% (one render's: {100 * row['worst, one render']:.2f}%;"
+            f" gate {100 * row['gate']:.0f}%)", None))
+    result.files.append(common.write_csv(settings.out / "information.csv", rows))
+    return result
