@@ -22,6 +22,15 @@ filter makes neighbouring pixels, and not across.
 The principled roughness at Table 2's truth shows alpha at its floor (0.001), where the image
 does not change with it: it is taken as known.
 
+A job of the daemon or the plain loop never sees J: it steps on back-propagated gradients,
+whose noise adds each path's derivative noise to the image's. Per component, the variance of
+AD_RENDERS such gradients of sum (I - R)^2 at the truth (the scene's own AD integrator at the
+cell's spp; R the mean of the noise renders) over the images' own, 4 J^T Sigma J, says how many
+renders' worth of noise one gradient carries; the job's spread with each component's part so
+inflated is what a job that steps on them can expect at best. An integrator's detached
+derivative (eta near the specular limit) makes its gradient biased too, which this does not
+count.
+
 Reported per cell: each gated parameter's spread (one standard deviation, relative to the
 truth) from one render and from the job's renders, and the median over Gaussian draws of the
 worst gated error of such a fit: the least error a job of the cell's budget can expect, beside
@@ -44,6 +53,7 @@ from defaults_matrix import cells
 NEEDS_DAEMON = False
 JSPP = 512                  # samples per pixel of each side of J's differences
 NOISE_RENDERS = 48          # renders at the job's spp for J^T Sigma J
+AD_RENDERS = 48             # back-propagated gradients at the job's spp for C_g
 ITERATIONS = 100            # a job's, as in the matrix
 DRAWS = 20_000              # Gaussian draws for the median worst error
 # Render noise is correlated within a few pixels (the scenes' Gaussian filter): J^T Sigma J
@@ -74,6 +84,7 @@ class Images:
 
     def __init__(self, mi, table: rs.Table, xml: Path, depth: int, film: tuple[int, int]):
         self.mi, self.table = mi, table
+        self.xml, self.depth, self.film, self.ad = xml, depth, film, None
         self.scene = mi.load_file(str(xml), integrator=PRIMAL[table.integrator],
                                   max_depth=depth, resx=film[0], resy=film[1])
         self.params = mi.traverse(self.scene)
@@ -85,6 +96,31 @@ class Images:
                                 else mi.Color3f(*v))
         self.params.update()
         return np.array(mi.render(self.scene, spp=spp, seed=seed), dtype=np.float64).ravel()
+
+    def gradients(self, spp: int, reference: np.ndarray, seeds: range) -> np.ndarray:
+        """Back-propagated gradients of sum (I - R)^2 at the truth, one row per seed, a
+        column per component, from the scene's own AD integrator."""
+        import drjit as dr
+        mi = self.mi
+        if self.ad is None:
+            self.ad = self.mi.load_file(str(self.xml), integrator=self.table.integrator,
+                                        max_depth=self.depth, resx=self.film[0],
+                                        resy=self.film[1])
+        params = mi.traverse(self.ad)
+        keys = list(dict.fromkeys(k for k, _ in components(self.table)))
+        ref = mi.TensorXf(reference.astype(np.float32).reshape(self.film[1], self.film[0], 3))
+        rows = []
+        for seed in seeds:
+            for key in keys:
+                v = self.table.truth[key]
+                params[key] = mi.Float(v[0]) if len(v) == 1 else mi.Color3f(*v)
+                dr.enable_grad(params[key])
+            params.update()
+            image = mi.render(self.ad, params, spp=spp, seed=seed)
+            dr.backward(dr.sum(dr.square(image - ref), axis=None))
+            grads = {k: np.array(dr.ravel(dr.grad(params[k])), np.float64).ravel() for k in keys}
+            rows.append([grads[k][c] for k, c in components(self.table)])
+        return np.array(rows)
 
     def jacobian(self, seed: int) -> np.ndarray:
         """J's columns by central differences, each pair of sides on the same samples."""
@@ -100,21 +136,42 @@ class Images:
         return np.stack(columns, 1)
 
 
-def spread(ja: np.ndarray, jb: np.ndarray, noise: np.ndarray, blocks: np.ndarray
-           ) -> np.ndarray:
-    """Cov of the least-squares fit to one render whose deviations from the mean are the rows
-    of ``noise``: the sandwich, both of its factors from products across J's two estimates.
-    J^T Sigma J is summed over ``blocks`` (a block id per pixel-channel), the noise taken as
-    correlated within a block and not across: projected on the whole image, the products of
-    J's noise with the renders' left its diagonal negative on Table 4 at max_depth 64."""
-    jtj = 0.5 * (ja.T @ jb + jb.T @ ja)
-    meat = np.zeros_like(jtj)
+def meat(ja: np.ndarray, jb: np.ndarray, noise: np.ndarray, blocks: np.ndarray
+         ) -> np.ndarray:
+    """J^T Sigma J for one render whose deviations from the mean are the rows of ``noise``,
+    summed over ``blocks`` (a block id per pixel-channel), the noise taken as correlated
+    within a block and not across: projected on the whole image, the products of J's noise
+    with the renders' left its diagonal negative on Table 4 at max_depth 64."""
+    out = np.zeros((ja.shape[1], ja.shape[1]))
     for b in np.unique(blocks):
         rows = blocks == b
         ga, gb = noise[:, rows] @ ja[rows], noise[:, rows] @ jb[rows]
-        meat += 0.5 * (ga.T @ gb + gb.T @ ga) / len(noise)
-    h = np.linalg.inv(jtj)
-    return h @ meat @ h
+        out += 0.5 * (ga.T @ gb + gb.T @ ga) / len(noise)
+    return out
+
+
+def spread(ja: np.ndarray, jb: np.ndarray, images_meat: np.ndarray) -> np.ndarray:
+    """Cov of the least-squares fit to one render, J^T Sigma J given: the sandwich, its
+    bread from products across J's two estimates."""
+    h = np.linalg.inv(0.5 * (ja.T @ jb + jb.T @ ja))
+    return h @ images_meat @ h
+
+
+def back_propagated(grads: np.ndarray, images_meat: np.ndarray) -> np.ndarray:
+    """Per component, the variance of a back-propagated gradient of sum (I - R)^2 (rows of
+    ``grads``) over that of the images' own, 4 J^T Sigma J: how many renders' worth of noise
+    one such gradient carries."""
+    own = 4 * np.diag(images_meat)
+    with np.errstate(divide="ignore", invalid="ignore"):  # not settled: nan
+        return np.where(own > 0, np.var(grads, axis=0, ddof=1) / own, np.nan)
+
+
+def _ratio(x: float) -> str:
+    return "not settled" if not np.isfinite(x) else f"{x:.1f}x"
+
+
+def _ad(spread_: float, ratio: float) -> str:
+    return "not settled" if not np.isfinite(ratio) else f"{100 * spread_:.2f}% ({ratio:.1f}x)"
 
 
 def image_blocks(film: tuple[int, int], size: int = BLOCK) -> np.ndarray:
@@ -151,20 +208,33 @@ def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
         renders = np.stack([images.render(table.truth, spp, 90_000 + i)
                             for i in range(NOISE_RENDERS)])
         noise = (renders - renders.mean(0)) * np.sqrt(NOISE_RENDERS / (NOISE_RENDERS - 1))
-        one = spread(ja, jb, noise, image_blocks(film))
+        m = meat(ja, jb, noise, image_blocks(film))
+        one = spread(ja, jb, m)
         # one render's spp samples; the job's ITERATIONS * spp and the reference's add
         job = one * (1 / ITERATIONS + spp / rs.REF_SPP)
+        grads = images.gradients(spp, renders.mean(0), range(70_000, 70_000 + AD_RENDERS))
+        ratio = back_propagated(grads, m)
+        # each component's part of the fit as noisy as its AD gradient (unsettled: nan)
+        inflate = np.sqrt(np.maximum(ratio, 1.0))
+        ad = inflate[:, None] * one * inflate[None, :] / ITERATIONS + one * spp / rs.REF_SPP
         row = {"table": table.name, "max_depth": depth, "spp": spp, "gate": table.gate,
                "j_seconds": round(j_seconds, 1)}
-        for label, cov in (("one render", one), ("job", job)):
-            for g, members in zip(table.targets, gated):
+        for key in dict.fromkeys(k for k, _ in comps):  # every fitted one, gated or not
+            members = [i for i, (k, _) in enumerate(comps) if k == key]
+            row[f"{_short(key)}, AD / images"] = float(np.mean(ratio[members]))
+        for g, members in zip(table.targets, gated):
+            for label, cov in (("one render", one), ("job", job), ("job, AD", ad)):
                 sd = np.sqrt(np.maximum(np.diag(cov)[members], 0.0))
                 row[f"{_short(g)}, {label}"] = float(np.sqrt(np.mean(sd ** 2))
                                                      / np.sqrt(np.mean(truth[members] ** 2)))
+        # no worst of the AD part: a gradient that carries no information (eta's) leaves the
+        # parameter where its start and its steps' wander do, which no spread describes
+        for label, cov in (("one render", one), ("job", job)):
             row[f"worst, {label}"] = worst_median(cov, truth, gated)
         rows.append(row)
         print(f"bench: information {table.name} depth {depth} spp {spp}: "
-              + ", ".join(f"{k} {100 * v:.2f}%" for k, v in row.items()
+              + ", ".join(f"{k} {v:.1f}x" if k.endswith("AD / images") else f"{k} {100 * v:.2f}%"
+                          for k, v in row.items()
                           if isinstance(v, float) and k not in ("gate", "j_seconds")),
               flush=True)
     return rows
@@ -193,24 +263,36 @@ def run(settings: Settings, server: object) -> Result:
         f"{ITERATIONS} iterations at the cell's spp and a {rs.REF_SPP}-spp reference. "
         "Spread: one standard deviation of the least-squares fit, relative to the truth "
         "(a colour's rms over its channels); worst: the median over draws of the fit of the "
-        "worst gated parameter's error, as the matrix takes it.")
+        "worst gated parameter's error, as the matrix takes it. The job's AD gradients: the job's "
+        "spread with each component's part as noisy as its back-propagated gradient, whose "
+        f"variance over the images' own ({AD_RENDERS} gradients at the truth) is in brackets; "
+        "not settled: the images' own variance came out negative.")
     result.lines.append("")
     result.lines.append("| table | max_depth | spp | gate | spread, one render | spread, the job's "
-                        "renders | worst, one render | worst, the job's renders |")
-    result.lines.append("|---|---|---|---|---|---|---|---|")
+                        "renders | worst, one render | worst, the job's renders | spread, the "
+                        "job's AD gradients (their variance over the images') |")
+    result.lines.append("|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         table = next(t for t in rs.TABLES if t.name == row["table"])
         names = [_short(g) for g in table.targets]
+        ratios = ", ".join(f"{k[:-len(', AD / images')]} {_ratio(v)}" for k, v in row.items()
+                           if k.endswith("AD / images"))
         result.lines.append(
             f"| {row['table']} | {row['max_depth']} | {row['spp']} | {100 * row['gate']:.0f}% | "
             + ", ".join(f"{n} {100 * row[f'{n}, one render']:.2f}%" for n in names) + " | "
             + ", ".join(f"{n} {100 * row[f'{n}, job']:.2f}%" for n in names) + " | "
-            + f"{100 * row['worst, one render']:.2f}% | {100 * row['worst, job']:.2f}% |")
+            + f"{100 * row['worst, one render']:.2f}% | {100 * row['worst, job']:.2f}% | "
+            + ", ".join(f"{n} {_ad(row[f'{n}, job, AD'], row[f'{n}, AD / images'])}"
+                        for n in names) + " |")
         result.targets.append(Target(
             f"{row['table']} max_depth {row['max_depth']} spp {row['spp']}: the median worst "
             "gated error of a least-squares fit to the job's renders (context: the floor under "
             "the matrix's cell)",
             f"{100 * row['worst, job']:.2f}% (one render's: {100 * row['worst, one render']:.2f}%;"
             f" gate {100 * row['gate']:.0f}%)", None))
+        result.targets.append(Target(
+            f"{row['table']} max_depth {row['max_depth']} spp {row['spp']}: a back-propagated "
+            "gradient's variance over the images' own, per fitted parameter (context: the "
+            "renders' worth a job that steps on it loses)", ratios, None))
     result.files.append(common.write_csv(settings.out / "information.csv", rows))
     return result

@@ -23,7 +23,8 @@ def test_the_fits_spread_is_sigma_squared_times_the_inverse_of_jtj_even_from_noi
     # Each estimate of J carries noise as large as its weakest column's signal.
     ja, jb = (j + 0.1 * rng.standard_normal(j.shape) for _ in range(2))
     noise = sigma * rng.standard_normal((400, pixels))
-    cov = information.spread(ja, jb, noise, np.arange(pixels) // 40)  # independent pixels
+    blocks = np.arange(pixels) // 40  # independent pixels
+    cov = information.spread(ja, jb, information.meat(ja, jb, noise, blocks))
     truth = sigma ** 2 * np.linalg.inv(j.T @ j)
     assert np.allclose(np.sqrt(np.diag(cov)), np.sqrt(np.diag(truth)), rtol=0.1), (cov, truth)
     # J's own noise, multiplied with itself, would have shrunk the weakest column's spread.
@@ -41,11 +42,11 @@ def test_noise_correlated_within_a_block_counts_as_the_blocks_own():
     j = rng.standard_normal((blocks.size, 1)) ** 2 + 0.5  # one positive column
     # the noise: one draw per 4x4 block, shared by its 48 pixel-channels
     noise = sigma * rng.standard_normal((400, 32))[:, blocks]
-    cov = information.spread(j, j, noise, blocks)
+    cov = information.spread(j, j, information.meat(j, j, noise, blocks))
     per_block = np.array([j[blocks == b, 0].sum() for b in range(32)])
     truth = sigma ** 2 * (per_block ** 2).sum() / (j[:, 0] @ j[:, 0]) ** 2
     assert np.sqrt(cov[0, 0]) == pytest.approx(np.sqrt(truth), rel=0.1)
-    alone = information.spread(j, j, noise, np.arange(blocks.size))
+    alone = information.spread(j, j, information.meat(j, j, noise, np.arange(blocks.size)))
     assert np.sqrt(alone[0, 0]) < 0.3 * np.sqrt(truth)
 
 
@@ -57,3 +58,18 @@ def test_the_median_worst_error_of_independent_fits_is_the_median_of_their_large
     assert abs(worst - 0.010518) < 0.0003
     colour = information.worst_median(np.diag([1e-4] * 3), np.ones(3), [np.array([0, 1, 2])])
     assert abs(colour - 0.01 * np.sqrt(2.366 / 3)) < 0.0003  # chi-square(3)'s median / 3
+
+
+def test_a_gradient_with_only_the_images_noise_is_one_renders_worth_and_a_noisier_one_more():
+    """g = 2 J^T e (an efficient gradient) carries one render's noise; each path's derivative
+    noise on top (J's rows drawn anew per gradient) adds its variance over the signal's."""
+    rng = np.random.default_rng(1)
+    pixels, sigma, n = 2000, 0.05, 3000
+    j = rng.standard_normal((pixels, 2)) * [1.0, 0.2]
+    e = sigma * rng.standard_normal((n, pixels))
+    images = information.meat(j, j, e[:400], np.arange(pixels))  # independent pixels
+    assert np.allclose(information.back_propagated(2 * e @ j, images), 1.0, rtol=0.15)
+    noisy = np.stack([2 * row @ (j + 0.5 * rng.standard_normal(j.shape)) for row in e])
+    # a column's variance grows by the derivative noise's over its signal's: 1 + 0.25 / J_k^2
+    assert np.allclose(information.back_propagated(noisy, images),
+                       1 + 0.25 / np.array([1.0, 0.04]), rtol=0.15)
