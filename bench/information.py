@@ -107,7 +107,8 @@ class Images:
                                         max_depth=self.depth, resx=self.film[0],
                                         resy=self.film[1])
         params = mi.traverse(self.ad)
-        keys = list(dict.fromkeys(k for k, _ in components(self.table)))
+        comps = components(self.table)
+        keys = list(dict.fromkeys(k for k, _ in comps))
         ref = mi.TensorXf(reference.astype(np.float32).reshape(self.film[1], self.film[0], 3))
         rows = []
         for seed in seeds:
@@ -119,7 +120,7 @@ class Images:
             image = mi.render(self.ad, params, spp=spp, seed=seed)
             dr.backward(dr.sum(dr.square(image - ref), axis=None))
             grads = {k: np.array(dr.ravel(dr.grad(params[k])), np.float64).ravel() for k in keys}
-            rows.append([grads[k][c] for k, c in components(self.table)])
+            rows.append([grads[k][c] for k, c in comps])
         return np.array(rows)
 
     def jacobian(self, seed: int) -> np.ndarray:

@@ -137,15 +137,16 @@ class EtaDifferences(Choice):
             else:
                 self.sparse += 1
                 self._say()
-            slope = 0.0
+            # left to Dr.Jit: the step evaluates it, with no read back of its own per iteration
+            slope = mi.Float(0.0)
             with dr.suspend_grad():
                 for _, sensor in ctx.sensors:
                     d = self.kept[key][sensor]
                     images = ctx.images[sensor]
                     up = ctx.image_loss([x + y for x, y in zip(images, d)], sensor)
                     down = ctx.image_loss([x - y for x, y in zip(images, d)], sensor)
-                    slope += float((up - down).array[0]) / (2 * STEP)
-            out[key] = mi.Float(slope / len(ctx.sensors))
+                    slope += dr.ravel(up - down)
+            out[key] = slope / (2 * STEP * len(ctx.sensors))
         return out
 
     def _difference(self, ctx, key: str, lo: float, hi: float, spp: int, settled: bool
