@@ -17,6 +17,8 @@ from matoptd.engine.choices import REGISTRY, assign_keys
 from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.linear_extinction import LinearExtinction
 from matoptd.engine.choices.log_space import LogSpace
+from matoptd.engine.choices.medium_constant_rate import MediumConstantRate
+from matoptd.engine.choices.slow_interface_width import SlowInterfaceWidth
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 from matoptd.engine.records import ParamRecord
 
@@ -33,7 +35,8 @@ def _settings(**choices: str) -> api.JobSettings:
 
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
-    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == ["gauss_newton"]
+    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
+        "slow_interface_width", "medium_constant_rate", "gauss_newton"]
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     off = _settings(eta_differences="off")
     assert not off.choice_on("eta_differences") and off.choice_on("log_space")
@@ -89,6 +92,58 @@ def test_a_homogeneous_extinction_steps_linearly_at_a_share_of_its_value_or_star
     linear, logs = LinearExtinction(settings), LogSpace(settings)
     _set_up([linear, logs], settings, records)
     assert logs.keys == [SIGMA_T, GRID] and logs.rates[SIGMA_T] == 0.03
+
+
+ALPHA, ETA, ALBEDO = "glass.alpha.value", "glass.eta", "medium.albedo.value.value"
+
+
+def _interface(alpha_rate: float | None = None, medium: bool = True, **choices: str):
+    """A rough dielectric's alpha and eta around a homogeneous medium (its albedo, sigma_t) and
+    a grid's sigma_t; alpha at the listed width rate unless ``alpha_rate`` is given."""
+    inf = float("inf")
+    params = [api.ParameterSetting(ALPHA, alpha_rate or 0.2, 0.0, 1.0),
+              api.ParameterSetting(ETA, 0.01, 1.001, 4.0),
+              api.ParameterSetting(GRID, 0.2, 0.0, inf)]
+    if medium:
+        params += [api.ParameterSetting(ALBEDO, 0.03, 0.0, 1.0),
+                   api.ParameterSetting(SIGMA_T, 0.03, 0.0, inf)]
+    settings = api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [], params,
+                               choices=choices)
+    starts = {ALPHA: np.array([0.98]), ETA: np.array([1.55]), GRID: np.full(8, 2.0),
+              ALBEDO: np.full(3, 0.01), SIGMA_T: np.array([0.99])}
+    records = _records(settings, starts)
+    records[ALPHA].rate_given = alpha_rate is not None
+    records[GRID].kind = "volume_grid"
+    return settings, records
+
+
+def test_named_a_media_albedo_and_extinction_keep_their_full_rate_and_nothing_else_does():
+    settings, records = _interface(medium_constant_rate="on")
+    choice = MediumConstantRate(settings)
+    _set_up([choice], settings, records)
+    assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]  # not the grid
+    assert [k for k, r in records.items() if not r.decays] == [ALBEDO, SIGMA_T]
+    # Off (the default), it says what it would do and leaves every variable to the schedule.
+    settings, records = _interface()
+    choice = MediumConstantRate(settings)
+    _set_up([choice], settings, records)
+    assert not choice.on and choice.applies and "decay with the schedule" in choice.why
+    assert all(r.decays for r in records.values())
+
+
+def test_named_a_dielectrics_width_around_a_medium_steps_at_half_its_listed_rate():
+    settings, records = _interface(slow_interface_width="on")
+    choice = SlowInterfaceWidth(settings)
+    _set_up([choice], settings, records)
+    assert choice.applies and choice.keys == [ALPHA]
+    assert choice.rate(records[ALPHA], 0.2) == pytest.approx(0.1)
+    assert "0.1 in place of 0.2" in choice.notes()[0]
+    # A rate the job gave is the job's; without a medium, eta's differences decide eta.
+    for settings, records in (_interface(0.3, slow_interface_width="on"),
+                              _interface(medium=False, slow_interface_width="on")):
+        choice = SlowInterfaceWidth(settings)
+        _set_up([choice], settings, records)
+        assert not choice.applies and choice.keys == []
 
 
 def _path(values: list[float], rate: float = 0.1) -> Path:

@@ -141,15 +141,20 @@ def test_a_step_after_a_hold_is_adams_first_step_at_the_rate(engine):
     np.testing.assert_allclose(moved, rate, rtol=1e-3)
 
 
-def test_a_variable_released_mid_job_steps_on_a_schedule_that_starts_at_its_release(engine):
-    """The cosine's share is 1 at a variable's schedule_begin and a tenth at the job's last
-    step; the others keep the job's own."""
+def _eight_iterations(engine):
+    """A loop of 8 iterations with the fake choices (green held at iterations 0 and 1)."""
     optimize, choices, _ = engine
     Holder, Halver = _fakes(choices, [])
     scene = _scene()
     settings = _settings(iterations=8)
-    loop = optimize.Optimization(scene, settings, _references(optimize, scene),
-                                 [Holder(settings), Halver(settings)])
+    return optimize, settings, optimize.Optimization(
+        scene, settings, _references(optimize, scene), [Holder(settings), Halver(settings)])
+
+
+def test_a_variable_released_mid_job_steps_on_a_schedule_that_starts_at_its_release(engine):
+    """The cosine's share is 1 at a variable's schedule_begin and a tenth at the job's last
+    step; the others keep the job's own."""
+    optimize, settings, loop = _eight_iterations(engine)
     for _ in range(2):
         loop.step()
     loop.records[GREEN].schedule_begin = 2
@@ -164,6 +169,18 @@ def test_a_variable_released_mid_job_steps_on_a_schedule_that_starts_at_its_rele
     assert red == pytest.approx([optimize.schedule_factor(settings, i) for i in range(2, 7)])
     assert optimize.schedule_factor(settings, 7, 2) == pytest.approx(0.1)
     assert all(g > r for g, r in zip(green, red))
+
+
+def test_a_variable_that_does_not_decay_keeps_its_full_rate_to_the_end(engine):
+    """A record a choice keeps whole (medium_constant_rate) steps at its step rate at every
+    iteration, while the others decay toward a tenth."""
+    optimize, settings, loop = _eight_iterations(engine)
+    loop.records[GREEN].decays = False
+    for _ in range(7):
+        loop.step()
+        assert loop.rate(GREEN) == pytest.approx(loop.records[GREEN].step_rate)
+    decayed = optimize.schedule_factor(settings, loop.ctx.iteration)
+    assert decayed < 0.15 and loop.rate(RED) == pytest.approx(decayed * loop.records[RED].step_rate)
 
 
 def test_a_choices_state_and_the_loop_survive_a_checkpoint(engine):

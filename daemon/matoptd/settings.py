@@ -47,6 +47,12 @@ CHOICES = {
                  "rate is a relative step",
     "linear_extinction": "a homogeneous medium's scalar sigma_t stepped linearly (not in log "
                          "space), its rate a share of the larger of its value and its start",
+    "slow_interface_width": "the microfacet width of a dielectric around a homogeneous medium, "
+                            "given no rate, stepped at half its listed rate, so that eta moves "
+                            "while the interface is rough; off unless turned on",
+    "medium_constant_rate": "a homogeneous medium's albedo and extinction stepped at their full "
+                            "rate to the end (the schedule's decay not applied to them); off "
+                            "unless turned on",
     "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
                        "(0.0318) while Adam steps on below it",
     "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "
@@ -68,7 +74,8 @@ CHOICES = {
               "(dr.freeze), and so are eta's difference renders and the standard errors' "
               "passes: no Python tracing per iteration; same results",
 }
-OFF_UNLESS_NAMED = ("gauss_newton",)  # choices a job turns on by name (or with ALL_CHOICES)
+# Choices a job turns on by name (or with ALL_CHOICES): candidates until the matrix decides.
+OFF_UNLESS_NAMED = ("gauss_newton", "slow_interface_width", "medium_constant_rate")
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")

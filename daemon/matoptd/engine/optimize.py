@@ -156,6 +156,8 @@ class Optimization:
     def rate(self, key: str) -> float:
         """The rate of ``key`` at this step (its step rate times the schedule's share)."""
         r = self.records[key]
+        if not r.decays:
+            return r.step_rate
         return r.step_rate * schedule_factor(self.settings, self.ctx.iteration, r.schedule_begin)
 
     def _apply(self) -> None:

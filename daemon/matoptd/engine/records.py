@@ -37,6 +37,8 @@ class ParamRecord:
                 images')
     schedule_begin  the step the rate schedule's decay starts from (0: the job's first; a
                 choice that releases a variable mid-job restarts it there: eta_hold)
+    decays      whether the schedule's decay applies to its rate (a choice may keep it whole:
+                medium_constant_rate)
     gradients   the latent gradient of each recent step (small variables only; NaN: held)
     means       v's mean per iteration (variables too large for the iteration records)
     """
@@ -60,6 +62,7 @@ class ParamRecord:
     current: np.ndarray | None = None
     held: list[int] = field(default_factory=list)
     schedule_begin: int = 0
+    decays: bool = True
     gradients: list[np.ndarray] = field(default_factory=list)
     means: list[float] = field(default_factory=list)
 

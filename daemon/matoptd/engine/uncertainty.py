@@ -330,7 +330,8 @@ def _adam(opt: Optimization, kept: Best) -> dict[str, Adam]:
         _, _, _, (t, _, v, _) = opt.opt.state[key]
         rate, recorded = r.step_rate, r.gradients
         held = set(r.held)  # a held step moved nothing
-        factors = np.repeat([0.0 if i in held else schedule_factor(c, i, r.schedule_begin)
+        factors = np.repeat([0.0 if i in held else 1.0 if not r.decays
+                             else schedule_factor(c, i, r.schedule_begin)
                              for i in range(max(kept.iteration, 0))], per)
         out[key] = Adam(np.asarray(v, dtype=np.float64).ravel(),
                         int(np.asarray(t).ravel()[0]), rate * factors,

@@ -7,8 +7,10 @@ start is changed (black_start) before it is encoded; a texture's coarse level is
 (multires, ``expand``) before its value is decoded, exp(u) (log_space) before the principled
 roughness's floor (roughness_floor); gains multiply the renders (exposure_gains) before eta's
 differences read them; eta's hold marks it held before its differences would be rendered for
-nothing. Both leave the keys that gauss_newton steps, while it is on. log_space leaves a homogeneous sigma_t to linear_extinction while that is on. frozen
-comes last: it begins once the others have said what they do to the renders.
+nothing. Both leave the keys that gauss_newton steps, while it is on. log_space leaves a
+homogeneous sigma_t to linear_extinction while that is on, and slow_interface_width takes a
+share of the relative rate log_space gives a width. frozen comes last: it begins once the
+others have said what they do to the renders.
 """
 
 from __future__ import annotations
@@ -27,13 +29,16 @@ from .gauss_newton import GaussNewton
 from .large_steps import LargeSteps
 from .linear_extinction import LinearExtinction
 from .log_space import LogSpace
+from .medium_constant_rate import MediumConstantRate
 from .multires import Multires
 from .roughness_floor import RoughnessFloor
+from .slow_interface_width import SlowInterfaceWidth
 from .smoothness import Smoothness
 
 REGISTRY: tuple[type[Choice], ...] = (
     FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, LinearExtinction,
-    RoughnessFloor, ExposureGains, Smoothness, EtaHold, EtaDifferences, GaussNewton, Frozen)
+    SlowInterfaceWidth, MediumConstantRate, RoughnessFloor, ExposureGains, Smoothness, EtaHold,
+    EtaDifferences, GaussNewton, Frozen)
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"
