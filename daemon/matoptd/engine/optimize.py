@@ -60,7 +60,14 @@ from .maps import Maps
 from .records import Best, ParamRecord, Progress, Step
 from .renders import Reference, Renders
 
-__all__ = ["Best", "CheckpointError", "Optimization", "Reference", "Step", "schedule_factor"]
+__all__ = ["Best", "CheckpointError", "Optimization", "Reference", "Step", "rate_share",
+           "schedule_factor"]
+
+
+def rate_share(settings: api.JobSettings, i: int, record: ParamRecord) -> float:
+    """The share of ``record``'s step rate at step i: the schedule's from its own begin, or
+    all of it for a record a choice keeps from decaying (medium_constant_rate)."""
+    return schedule_factor(settings, i, record.schedule_begin) if record.decays else 1.0
 
 
 def schedule_factor(settings: api.JobSettings, i: int, begin: int = 0) -> float:
@@ -156,9 +163,7 @@ class Optimization:
     def rate(self, key: str) -> float:
         """The rate of ``key`` at this step (its step rate times the schedule's share)."""
         r = self.records[key]
-        if not r.decays:
-            return r.step_rate
-        return r.step_rate * schedule_factor(self.settings, self.ctx.iteration, r.schedule_begin)
+        return r.step_rate * rate_share(self.settings, self.ctx.iteration, r)
 
     def _apply(self) -> None:
         params = self.renders.params

@@ -113,6 +113,12 @@ def medium_property(key: str) -> bool:
     return property_name(key) in _MEDIUM
 
 
+def homogeneous_medium_property(key: str, kind: str) -> bool:
+    """A constant volume's albedo or extinction (one value or colour; a grid's kind is
+    volume_grid)."""
+    return medium_property(key) and kind in ("scalar", "rgb")
+
+
 def dielectric_eta(key: str) -> bool:
     """`obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's complex
     IOR is a texture (`obj.eta.value`) and only needs to be non-negative."""

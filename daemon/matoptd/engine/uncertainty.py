@@ -24,7 +24,7 @@ from .jacobian import (BUDGET, MAX_COMPONENTS, Clock, Job, Linearization, Pieces
                        Sensor, _Component, _latent_step, basis, drain, linearizing, quantity,
                        references)
 from .losses import LOSSES
-from .optimize import Best, Optimization, schedule_factor
+from .optimize import Best, Optimization, rate_share
 
 
 @dataclass
@@ -330,8 +330,7 @@ def _adam(opt: Optimization, kept: Best) -> dict[str, Adam]:
         _, _, _, (t, _, v, _) = opt.opt.state[key]
         rate, recorded = r.step_rate, r.gradients
         held = set(r.held)  # a held step moved nothing
-        factors = np.repeat([0.0 if i in held else 1.0 if not r.decays
-                             else schedule_factor(c, i, r.schedule_begin)
+        factors = np.repeat([0.0 if i in held else rate_share(c, i, r)
                              for i in range(max(kept.iteration, 0))], per)
         out[key] = Adam(np.asarray(v, dtype=np.float64).ravel(),
                         int(np.asarray(t).ravel()[0]), rate * factors,

@@ -20,16 +20,13 @@ from .. import parameters
 from .base import Choice
 
 
-HOMOGENEOUS = ("scalar", "rgb")  # a constant volume's value; a grid's kind is volume_grid
-
-
 class MediumConstantRate(Choice):
     name = "medium_constant_rate"
     writes = ("decays",)
 
     def select(self, ctx, records):
         return [k for k, r in records.items() if r.scene is not None
-                and parameters.medium_property(k) and r.kind in HOMOGENEOUS]
+                and parameters.homogeneous_medium_property(k, r.kind)]
 
     def setup(self, ctx, records, state) -> None:
         self.applies = bool(records)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from .. import parameters
 from .base import Choice
-from .medium_constant_rate import HOMOGENEOUS
 
 SHARE = 0.5  # of the listed width rate
 
@@ -30,8 +29,7 @@ class SlowInterfaceWidth(Choice):
 
     def select(self, ctx, records):
         keys = [k for k, r in records.items() if r.scene is not None]
-        if not any(parameters.medium_property(k) and records[k].kind in HOMOGENEOUS
-                   for k in keys):
+        if not any(parameters.homogeneous_medium_property(k, records[k].kind) for k in keys):
             return []
         etas = [k for k in keys if parameters.dielectric_eta(k)]
         return [w for eta in etas for w in parameters.microfacet_widths(eta, keys)
