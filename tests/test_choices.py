@@ -35,8 +35,7 @@ def _settings(**choices: str) -> api.JobSettings:
 
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
-    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
-        "slow_interface_width", "medium_constant_rate", "gauss_newton"]
+    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == ["gauss_newton"]
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     off = _settings(eta_differences="off")
     assert not off.choice_on("eta_differences") and off.choice_on("log_space")
@@ -113,34 +112,44 @@ def _interface(alpha_rate: float | None = None, medium: bool = True, **choices: 
               ALBEDO: np.full(3, 0.01), SIGMA_T: np.array([0.99])}
     records = _records(settings, starts)
     records[ALPHA].rate_given = alpha_rate is not None
+    for key in (ALBEDO, SIGMA_T) if medium else ():
+        records[key].rate_given = False  # the listed rates
     records[GRID].kind = "volume_grid"
     return settings, records
 
 
-def test_named_a_media_albedo_and_extinction_keep_their_full_rate_and_nothing_else_does():
-    settings, records = _interface(medium_constant_rate="on")
+def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_does():
+    settings, records = _interface()  # on by default
     choice = MediumConstantRate(settings)
     _set_up([choice], settings, records)
     assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]  # not the grid
     assert [k for k, r in records.items() if not r.decays] == [ALBEDO, SIGMA_T]
-    # Off (the default), it says what it would do and leaves every variable to the schedule.
-    settings, records = _interface()
+    # Off, it says what it would do and leaves every variable to the schedule.
+    settings, records = _interface(medium_constant_rate="off")
     choice = MediumConstantRate(settings)
     _set_up([choice], settings, records)
     assert not choice.on and choice.applies and "decay with the schedule" in choice.why
     assert all(r.decays for r in records.values())
+    # The valley is the pair's: sigma_t alone, or a pair with a rate the job gave, decays.
+    alone, records = _interface()
+    del records[ALBEDO]
+    given, given_records = _interface()
+    given_records[SIGMA_T].rate_given = True
+    for settings, records in ((alone, records), (given, given_records)):
+        choice = MediumConstantRate(settings)
+        _set_up([choice], settings, records)
+        assert not choice.applies and all(r.decays for r in records.values())
 
 
-def test_named_a_dielectrics_width_around_a_medium_steps_at_half_its_listed_rate():
-    settings, records = _interface(slow_interface_width="on")
+def test_a_dielectrics_width_around_a_medium_steps_at_half_its_listed_rate():
+    settings, records = _interface()  # on by default
     choice = SlowInterfaceWidth(settings)
     _set_up([choice], settings, records)
     assert choice.applies and choice.keys == [ALPHA]
     assert choice.rate(records[ALPHA], 0.2) == pytest.approx(0.1)
     assert "0.1 in place of 0.2" in choice.notes()[0]
     # A rate the job gave is the job's; without a medium, eta's differences decide eta.
-    for settings, records in (_interface(0.3, slow_interface_width="on"),
-                              _interface(medium=False, slow_interface_width="on")):
+    for settings, records in (_interface(0.3), _interface(medium=False)):
         choice = SlowInterfaceWidth(settings)
         _set_up([choice], settings, records)
         assert not choice.applies and choice.keys == []
@@ -201,7 +210,7 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
     assert choices["eta_differences"].seconds_per_iteration >= 0
     assert choices["roughness_floor"].seconds_per_iteration < 0.01
-    assert any("its rate 0.2 is a relative step" in n for n in job.notes)
+    assert any("its listed rate 0.2 is a relative step" in n for n in job.notes)
 
     off = _job(stubs, case, 8, eta_differences="off", log_space="off")
     choices = {c.name: c for c in off.choices}

@@ -60,6 +60,6 @@ class LogSpace(Choice):
         return dataclasses.replace(kept, lo=lo, hi=hi, log=True)
 
     def notes(self) -> list[str]:
-        return [f"{k}: stepped in log space, so its rate {r:g} is a relative step (about "
+        return [f"{k}: stepped in log space, so its listed rate {r:g} is a relative step (about "
                 f"{100 * (math.exp(r) - 1):.3g}% of the value per step at full rate), not an "
                 "absolute one" for k, r in sorted(self.rates.items())]

@@ -6,12 +6,14 @@ they share a valley (a darker albedo and a thinner medium look alike), along whi
 gradients are small beside their noise, and the decay stops them short of its bottom. On the
 thesis's Table 4 scene at max_depth 8, spp 16, the jobs' notes said the albedo was still
 moving at the end, and the last iterates averaged were no closer than the last one: they end
-short of the truth, not in a ball of noise. With this choice (and slow_interface_width) the
-median worst gated error over 8 seeds was 2.85% against the defaults' 8.2% in the same hour
-and the plain loop's 3.0% at equal time (docs/benchmarks-history.md, 2026-11-29 evening).
+short of the truth, not in a ball of noise. With this choice and slow_interface_width, Table 4
+at max_depth 8, spp 32 ended at a median worst gated error of 1.7% over 8 seeds, against 7.6%
+without them and the plain loop's 3.3% at equal time.
 
-Off unless named, until the matrix of depths and spp decides (bench/defaults_matrix.py).
-Grids keep the decay: their texels are many and each is seen by few pixels.
+Only for a medium whose albedo and sigma_t are both selected, neither given a rate: the
+valley is the pair's, and a rate the job gave is the job's. Grids keep the decay: their texels
+are many and each is seen by few pixels. The cells of bench/defaults_matrix.py it concerns
+(Table 4's) are in docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -19,14 +21,24 @@ from __future__ import annotations
 from .. import parameters
 from .base import Choice
 
+PAIR = {"albedo", "sigma_t"}  # the two a medium's brightness can come from
+
 
 class MediumConstantRate(Choice):
     name = "medium_constant_rate"
     writes = ("decays",)
 
     def select(self, ctx, records):
-        return [k for k, r in records.items() if r.scene is not None
-                and parameters.homogeneous_medium_property(k, r.kind)]
+        # The valley is the pair's: a medium with only one of them selected, or a rate the
+        # job gave, keeps the schedule.
+        pairs: dict[str, dict[str, str]] = {}
+        for k, r in records.items():
+            if (r.scene is not None and not r.rate_given
+                    and parameters.homogeneous_medium_property(k, r.kind)):
+                name = parameters.property_name(k)
+                pairs.setdefault(k[:k.rindex(name)], {})[name] = k
+        return [k for pair in pairs.values() if PAIR <= pair.keys() for k in pair.values()
+                if parameters.property_name(k) in PAIR]
 
     def setup(self, ctx, records, state) -> None:
         self.applies = bool(records)

@@ -11,8 +11,9 @@ a median 1.0% off against the defaults' 2.8% (docs/benchmarks-history.md, 2026-1
 
 Only for a width the job gave no rate for, beside a dielectric's eta with a medium selected:
 without a medium, eta_differences decides eta near the specular limit (Table 2), and a width
-crossing decades (0.5 to 0.001) needs the full rate to get there in a short job. Off unless
-named, until the matrix of depths and spp decides.
+crossing decades (0.5 to 0.001) needs the full rate to get there in a short job. With
+medium_constant_rate, Table 4's depth-8 cells went from losing to the plain loop to tying or
+beating it (bench/defaults_matrix.py; docs/benchmarks.md).
 """
 
 from __future__ import annotations
