@@ -261,6 +261,11 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert choices["linear_extinction"].on and "sigma_t" in choices["linear_extinction"].why
     assert "sigma_t" not in choices["log_space"].why
     assert any("sigma_t" in n and "stepped linearly" in n for n in held.notes)
+    # The interface's width at half its rate while eta waits; the medium's pair undecayed.
+    assert choices["slow_interface_width"].on and "alpha" in choices["slow_interface_width"].why
+    assert any("alpha" in n and "0.1 in place of 0.2" in n for n in held.notes)
+    assert choices["medium_constant_rate"].on
+    assert all(k in choices["medium_constant_rate"].why for k in ("albedo", "sigma_t"))
     # No release before WINDOW steps of the others are known.
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))

@@ -31,14 +31,13 @@ class MediumConstantRate(Choice):
     def select(self, ctx, records):
         # The valley is the pair's: a medium with only one of them selected, or a rate the
         # job gave, keeps the schedule.
-        pairs: dict[str, dict[str, str]] = {}
+        pairs: dict[str, list[str]] = {}  # the medium's key prefix -> its selected pair
         for k, r in records.items():
-            if (r.scene is not None and not r.rate_given
+            name = parameters.property_name(k)
+            if (name in PAIR and r.scene is not None and not r.rate_given
                     and parameters.homogeneous_medium_property(k, r.kind)):
-                name = parameters.property_name(k)
-                pairs.setdefault(k[:k.rindex(name)], {})[name] = k
-        return [k for pair in pairs.values() if PAIR <= pair.keys() for k in pair.values()
-                if parameters.property_name(k) in PAIR]
+                pairs.setdefault(k[:k.rindex(name)], []).append(k)
+        return [k for keys in pairs.values() if len(keys) == len(PAIR) for k in keys]
 
     def setup(self, ctx, records, state) -> None:
         self.applies = bool(records)
