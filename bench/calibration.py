@@ -12,10 +12,10 @@
    figure is owed). ``python bench/calibration.py --cost-against DIR`` runs this part alone,
    beside a daemon running another checkout's code (DIR), their jobs in turns: a change's
    before and after in one run.
-3. The thesis's Table 2 and Table 4 scenes themselves (``--thesis-repo``, default
-   /work/thesis-repo; skipped when absent), 128x96, 100 iterations, started where the thesis
-   started, 3 seeds: coverage per kind, the estimate's cost and the notes on what the images
-   do not decide.
+3. The thesis's Table 2 and Table 4 scenes themselves (``--thesis-repo``, else
+   $MATOPT_THESIS_REPO or /work/thesis-repo; skipped when absent), 128x96, 100 iterations,
+   started where the thesis started, 3 seeds: coverage per kind, the estimate's cost and the
+   notes on what the images do not decide.
 """
 
 from __future__ import annotations
@@ -163,12 +163,12 @@ THESIS = {
 }
 
 
-def _thesis(client, seeds: int, iterations: int) -> tuple[list[str], list[dict], list[Target]]:
+def _thesis(client, repo: Path, seeds: int, iterations: int
+            ) -> tuple[list[str], list[dict], list[Target]]:
     lines, rows, targets = [], [], []
     for table, (xml, overrides, wanted) in THESIS.items():
-        scene = workflow.create_scene(client, THESIS_REPO / xml,
-                                      {"resx": "128", "resy": "96", **overrides},
-                                      root=THESIS_REPO)
+        scene = workflow.create_scene(client, repo / xml,
+                                      {"resx": "128", "resy": "96", **overrides}, root=repo)
         listed = {p.key: p for p in client.scenes.ListSceneParameters(
             pb.ListSceneParametersRequest(name=scene.name)).parameters}
         chosen = {}
@@ -250,14 +250,15 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                                   f"{median:.0f}%", median <= 10))
     if settings.cost_only:
         lines.append("| procedural coverage, thesis Tables 2 and 4 | not run (--cost-only) | | | |")
-    elif THESIS_REPO.is_dir():
-        part, part_rows, thesis_targets = _thesis(client, 1 if settings.quick else THESIS_SEEDS,
+    elif (repo := settings.thesis_repo or THESIS_REPO).is_dir():
+        part, part_rows, thesis_targets = _thesis(client, repo,
+                                                  1 if settings.quick else THESIS_SEEDS,
                                                   30 if settings.quick else 100)
         lines += part
         rows += part_rows
         targets += thesis_targets
     else:
-        lines.append(f"| thesis Tables 2 and 4 | skipped: {THESIS_REPO} not found | | | |")
+        lines.append(f"| thesis Tables 2 and 4 | skipped: {repo} not found | | | |")
     csv = common.write_csv(settings.out / "calibration.csv", rows)
     return Result("calibration", "Standard errors: coverage of the truth and cost", targets, [
         "Per kind: how often the truth lay within two standard errors of the LAST result "

@@ -177,6 +177,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                  "worst_key": _worst_key(table, r),
                  "to_2pct": r.staying(table.targets, 0.02),
                  "to_1pct": r.staying(table.targets, 0.01)} for r in cell.runs]
+        # Written after every cell: a run stopped part way keeps the cells it finished.
+        common.write_csv(settings.out / "defaults_matrix.csv", csv)
     result.targets.append(Target(
         "cells where the defaults' worst final error <= the plain loop's at equal time and "
         "their time to 2% staying <= half the plain loop's (where it gets there)",
@@ -204,5 +206,5 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                             "(no plain run at equal iterations).")
     elif settings.with_choices:
         result.lines.insert(1, f"Candidate: the defaults with {named}.")
-    result.files.append(common.write_csv(settings.out / "defaults_matrix.csv", csv))
+    result.files.append(settings.out / "defaults_matrix.csv")
     return result
