@@ -206,5 +206,5 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                             "(no plain run at equal iterations).")
     elif settings.with_choices:
         result.lines.insert(1, f"Candidate: the defaults with {named}.")
-    result.files.append(settings.out / "defaults_matrix.csv")
+    result.files.append(common.write_csv(settings.out / "defaults_matrix.csv", csv))
     return result

@@ -131,11 +131,11 @@ def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_do
     assert not choice.on and choice.applies and "decay with the schedule" in choice.why
     assert all(r.decays for r in records.values())
     # The valley is the pair's: sigma_t alone, or a pair with a rate the job gave, decays.
-    alone, records = _interface()
-    del records[ALBEDO]
-    given, given_records = _interface()
-    given_records[SIGMA_T].rate_given = True
-    for settings, records in ((alone, records), (given, given_records)):
+    alone = _interface()
+    del alone[1][ALBEDO]
+    given = _interface()
+    given[1][SIGMA_T].rate_given = True
+    for settings, records in (alone, given):
         choice = MediumConstantRate(settings)
         _set_up([choice], settings, records)
         assert not choice.applies and all(r.decays for r in records.values())
