@@ -5,7 +5,8 @@ loop, at equal work.
 1. The Cornell box: overhead's job (the red and green walls from grey, MSE, Adam 0.03
    constant, 4 spp, prb at the scene's depth 8, the same seeds on all three sides) at 32x32,
    64x64 and 128x96. Per-iteration time is steady state from the daemon's history
-   (iteration 0 out; the frozen job's second recording, at iteration 1, in).
+   (iteration 0 out; the frozen job's second recording, at iteration 1, in). Not on a GPU,
+   where bench/overhead.py times the same job.
 2. The thesis's Table 2 and Table 4 scenes (``--thesis-repo``; skipped when absent) at 32x24,
    64x48 and 128x96, jobs of the thesis's 100 iterations (on a GPU: Table 2 alone at its own
    683x512, jobs of 10 iterations, one round): the daemon's defaults
@@ -225,7 +226,11 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     rows: list[dict] = []
     targets: list[Target] = []
     lines: list[str] = []
-    _cornell(settings, server, iterations, rounds, rows, targets, lines)
+    if server.cuda and not settings.quick:
+        # A GPU loan's share holds the thesis's cell alone; overhead times the Cornell box there.
+        lines.append("The Cornell box: not run on a GPU (bench/overhead.py times it there).")
+    else:
+        _cornell(settings, server, iterations, rounds, rows, targets, lines)
     repo = settings.thesis_repo
     if repo is not None and (repo / real_scenes.TABLES[0].path).exists():
         # The thesis's 100 iterations weigh the job's end as its jobs do.

@@ -42,8 +42,11 @@ class LocalDaemon:
         """
         port_file = self.directory / "port"
         data_dir = self.directory / "data"
+        # One worker: a private daemon serves one command's jobs one at a time, and on a GPU
+        # each further worker would spend its own CUDA start before the daemon answers.
         command = [sys.executable, "-m", "matoptd", "--listen", "127.0.0.1:0",
-                   "--data-dir", str(data_dir), "--port-file", str(port_file)]
+                   "--data-dir", str(data_dir), "--port-file", str(port_file),
+                   "--workers-per-device", "1"]
         with open(self.log_path, "wb") as log:
             self.process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
                                             stderr=subprocess.STDOUT,
