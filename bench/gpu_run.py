@@ -17,6 +17,7 @@ import dataclasses
 import datetime
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -201,21 +202,74 @@ def run_all(args) -> int:
 
 
 def splice(source: Path, docs: Path) -> int:
-    """Copies a --gpu run's output to bench/results/gpu/ and its section into ``docs``."""
+    """Copies a --gpu run's output to bench/results/gpu/ and its section into ``docs``. The
+    cases it did not run (a loan's run of some cases, ``--only``) keep the figures and files
+    of the section before, under a line saying which run they come from."""
     text = (source / "summary.md").read_text()
     if BEGIN not in text or END not in text:
         raise SystemExit(f"{source / 'summary.md'}: not the output of run.py --gpu")
+    page = docs.read_text()
+    block = merge(current(page), text)
+    kept = _cases(current(page)) - _cases(text)
     if source.resolve() != RESULTS.resolve():
-        shutil.rmtree(RESULTS, ignore_errors=True)
-        RESULTS.mkdir(parents=True)
+        for old in RESULTS.glob("cases/*"):
+            if old.name not in kept:
+                shutil.rmtree(old, ignore_errors=True)
+        RESULTS.mkdir(parents=True, exist_ok=True)
         for f in source.rglob("*"):
             if f.is_file() and f.suffix in (".csv", ".md"):
                 target = RESULTS / f.relative_to(source)
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(f, target)
-    docs.write_text(keep_section(docs.read_text(), text))
+    (RESULTS / "summary.md").write_text(block)
+    docs.write_text(keep_section(page, block))
     print(f"bench: spliced the GPU section into {docs}", file=sys.stderr)
     return 0
+
+
+def _cases(block: str) -> set[str]:
+    """The cases a section holds, by its case headings."""
+    return set(re.findall(r"^### .*\(`bench/(\w+)\.py`", block, re.M))
+
+
+def _split(block: str) -> tuple[list[str], list[str], dict[str, str]]:
+    """A section's head (its lines before the table), its table rows, and its case
+    subsections by name."""
+    body = block[block.index(BEGIN) + len(BEGIN):block.index(END)].strip("\n")
+    top, _, rest = body.partition("\n### ")
+    lines = top.splitlines()
+    rows = [ln for ln in lines if ln.startswith("| ") and not ln.startswith("| case |")]
+    head = [ln for ln in lines if not ln.startswith("|")]
+    subsections = {}
+    for part in ("### " + rest).split("\n### ") if rest else []:
+        part = part if part.startswith("### ") else "### " + part
+        m = re.match(r"### .*\(`bench/(\w+)\.py`", part)
+        if m:
+            subsections[m.group(1)] = part.rstrip("\n")
+    return head, rows, subsections
+
+
+def merge(before: str, after: str) -> str:
+    """``after``'s section, with the cases only ``before`` has appended as they were."""
+    if not before:
+        return after
+    head_b, rows_b, subs_b = _split(before)
+    head_a, rows_a, subs_a = _split(after)
+    kept = [name for name in subs_b if name not in subs_a]
+    if not kept:
+        return after
+    was = " ".join(ln for ln in head_b if ln.startswith("`"))
+    # A line about a run before that one stays while a case it names is still kept.
+    earlier = [ln for ln in head_b if ln.startswith("Earlier, for ")
+               and set(ln[len("Earlier, for "):].split(" (")[0].split(", ")) & set(kept)]
+    note = f"Earlier, for {', '.join(kept)} (not in the run above): {was}"
+    rows = rows_a + [r for r in rows_b if r.split("|")[1].strip() in kept]
+    lines = [BEGIN, "## GPU run", "", *[ln for ln in head_a if ln.startswith("`")], "", note,
+             *[x for ln in earlier for x in ("", ln)], "",
+             "| case | figure | result | met |", "|---|---|---|---|", *rows]
+    for name, part in list(subs_a.items()) + [(n, subs_b[n]) for n in kept]:
+        lines += ["", part]
+    return "\n".join(lines) + "\n" + END + "\n"
 
 
 def keep_section(page: str, block: str | None = None) -> str:

@@ -129,3 +129,43 @@ def test_real_scenes_stopped_at_its_cap_reports_the_seeds_that_ended(tmp_path, m
     assert any(w.startswith("GPU table2") for w in figures), figures  # seed 0's figure
     rows = (tmp_path / "real_scenes.csv").read_text().splitlines()
     assert len(rows) == 1 + 3  # the header and seed 0's three runs; seed 1's plain left out
+
+
+def test_a_run_of_some_cases_keeps_the_other_cases_of_the_run_before(tmp_path, monkeypatch):
+    """A loan's run of the demo alone replaces the demo's figure and file, and keeps
+    overhead's from the run before, saying which run that was."""
+    monkeypatch.setattr(gpu_run, "RESULTS", tmp_path / "results" / "gpu")
+    docs = tmp_path / "benchmarks.md"
+    docs.write_text("# matopt benchmarks\n")
+    first, second = tmp_path / "first" / "gpu", tmp_path / "second" / "gpu"
+    first.mkdir(parents=True)
+    csv = first / "cases" / "overhead" / "overhead.csv"
+    csv.parent.mkdir(parents=True)
+    csv.write_text("round,ratio\n0,0.28\n")
+    overhead = Result("overhead", "Daemon overhead per iteration",
+                      [Target("daemon / plain loop", "0.280", True)], ["- ratio 0.280"], [csv])
+    earlier = HEAD | {"when": "2026-11-28 20:14 UTC"}
+    (first / "summary.md").write_text(gpu_run.section([_result(first, "5.9 s"), overhead],
+                                                      first, earlier, True))
+    gpu_run.splice(first, docs)
+    second.mkdir(parents=True)
+    (second / "summary.md").write_text(gpu_run.section([_result(second, "4.1 s")], second,
+                                                       HEAD, True))
+    gpu_run.splice(second, docs)
+    page = docs.read_text()
+    assert "| demo | demo time | 4.1 s | met |" in page and "5.9 s" not in page
+    assert "| overhead | daemon / plain loop | 0.280 | met |" in page
+    assert "### Daemon overhead per iteration (`bench/overhead.py`" in page
+    assert "Earlier, for overhead (not in the run above): `python bench/run.py --gpu` " \
+           "(finished): 2026-11-28 20:14 UTC" in page
+    assert page.count("### The demo's time") == 1 and page.count(gpu_run.BEGIN) == 1
+    assert (tmp_path / "results" / "gpu" / "cases" / "overhead" / "overhead.csv").exists()
+    # Once every case of the earlier run is run again, nothing of it is left.
+    again = second / "cases" / "overhead" / "overhead.csv"
+    again.parent.mkdir(parents=True)
+    again.write_text("round,ratio\n0,0.27\n")
+    overhead.files = [again]
+    (second / "summary.md").write_text(gpu_run.section(
+        [_result(second, "4.0 s"), overhead], second, HEAD, True))
+    gpu_run.splice(second, docs)
+    assert "Earlier, for" not in docs.read_text()
