@@ -6,7 +6,8 @@
 #                                  the wheels' contents for CPython $PY (default 3.12), mitsuba
 #                                  with its RGB variants only, xz-compressed (the carry limit is
 #                                  64 MiB); the gRPC stubs; the thesis's scenes from THESIS
-#                                  (default /work/thesis), which the repository may not hold.
+#                                  (default /work/thesis; Tables 2 and 4's folders), which the
+#                                  repository may not hold.
 #   bench/gpu.sh device OUT [ARGS]  there: installs bench/.gpu/ into a new venv without any
 #                                  index, and runs `bench/run.py --gpu --out OUT/gpu ARGS`.
 #   bench/gpu.sh splice DIR        here: bench/run.py --splice on what came back (DIR: OUT, which
@@ -38,7 +39,11 @@ bundle)
   rm -rf "$bundle" && mkdir -p "$bundle"
   tar -cJf "$bundle/site.tar.xz" -C "$tmp/site" .
   tar -cf "$bundle/stubs.tar" -C "$root/proto/matopt_api/v1" $(cd "$root/proto/matopt_api/v1" && ls ./*_pb2*.py)
-  tar -cJf "$bundle/thesis.tar.xz" -C "$thesis" scenes/material-preview
+  # The folders of the scenes bench/ reads (real_scenes' and calibration's tables), not all
+  # of the thesis's (64 MiB would not hold them beside the wheels).
+  m=scenes/material-preview
+  tar -cJf "$bundle/thesis.tar.xz" -C "$thesis" $m/translucent-principled-bsdf \
+    $m/translucent-participating-media $m/meshes
   echo "$py" > "$bundle/python-version"
   # The tree travels without git: the commit as of now (build the bundle after the last commit)
   commit=$(git -C "$root" rev-parse --short HEAD)
