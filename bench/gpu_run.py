@@ -156,7 +156,7 @@ def section(results: list[Result], out: Path, head: dict, done: bool) -> str:
     mark = {True: "met", False: "MISSED", None: "n/a"}
     for r in results:
         for t in r.targets:
-            lines.append(f"| {r.name} | {t.what} | {t.figure} | {mark[t.met]} |")
+            lines.append(f"| {r.name} | {t.what} | {_cell(t.figure)} | {mark[t.met]} |")
     for r in results:
         lines += ["", f"### {r.title} (`bench/{r.name}.py`, {r.seconds:.0f} s)", "", *r.lines]
         tables = [Path(f) for f in r.files if Path(f).suffix == ".csv"]
@@ -165,6 +165,11 @@ def section(results: list[Result], out: Path, head: dict, done: bool) -> str:
             lines += ["", "Data: " + ", ".join(f"[{p}]({LINK}{p})" for p in rel)]
     lines.append(END)
     return "\n".join(lines) + "\n"
+
+
+def _cell(text: str) -> str:
+    """``text`` on one line of a table row (an exception's message spans several)."""
+    return " ".join(str(text).split()).replace("|", "\\|")
 
 
 def run_all(args) -> int:
@@ -250,7 +255,8 @@ def _split(block: str) -> tuple[list[str], list[str], dict[str, str]]:
 
 
 def merge(before: str, after: str) -> str:
-    """``after``'s section, with the cases only ``before`` has appended as they were."""
+    """``after``'s section, with the cases only ``before`` has appended as they were, each
+    run they come from named in an "Earlier, for CASES: ..." line."""
     if not before:
         return after
     head_b, rows_b, subs_b = _split(before)
@@ -258,14 +264,19 @@ def merge(before: str, after: str) -> str:
     kept = [name for name in subs_b if name not in subs_a]
     if not kept:
         return after
-    was = " ".join(ln for ln in head_b if ln.startswith("`"))
-    # A line about a run before that one stays while a case it names is still kept.
-    earlier = [ln for ln in head_b if ln.startswith("Earlier, for ")
-               and set(ln[len("Earlier, for "):].split(" (")[0].split(", ")) & set(kept)]
-    note = f"Earlier, for {', '.join(kept)} (not in the run above): {was}"
+    runs = []  # (cases, the run's line), the runs before ``after``
+    for line in head_b:
+        m = re.match(r"Earlier, for ([\w, ]+): (.*)", line)
+        if m:
+            runs.append((m.group(1).split(", "), m.group(2)))
+    older = {c for cases, _ in runs for c in cases}
+    own = " ".join(ln for ln in head_b if ln.startswith("`"))
+    runs.insert(0, ([c for c in subs_b if c not in older], own))
+    notes = [f"Earlier, for {', '.join(left)}: {line}" for cases, line in runs
+             if (left := [c for c in cases if c in kept])]
     rows = rows_a + [r for r in rows_b if r.split("|")[1].strip() in kept]
-    lines = [BEGIN, "## GPU run", "", *[ln for ln in head_a if ln.startswith("`")], "", note,
-             *[x for ln in earlier for x in ("", ln)], "",
+    lines = [BEGIN, "## GPU run", "", *[ln for ln in head_a if ln.startswith("`")],
+             *[x for note in notes for x in ("", note)], "",
              "| case | figure | result | met |", "|---|---|---|---|", *rows]
     for name, part in list(subs_a.items()) + [(n, subs_b[n]) for n in kept]:
         lines += ["", part]

@@ -133,7 +133,8 @@ def test_real_scenes_stopped_at_its_cap_reports_the_seeds_that_ended(tmp_path, m
 
 def test_a_run_of_some_cases_keeps_the_other_cases_of_the_run_before(tmp_path, monkeypatch):
     """A loan's run of the demo alone replaces the demo's figure and file, and keeps
-    overhead's from the run before, saying which run that was."""
+    overhead's from the run before, saying which run that was; a later run of overhead alone
+    leaves the demo's attributed to the run that made it, and no line for the first."""
     monkeypatch.setattr(gpu_run, "RESULTS", tmp_path / "results" / "gpu")
     docs = tmp_path / "benchmarks.md"
     docs.write_text("# matopt benchmarks\n")
@@ -156,16 +157,33 @@ def test_a_run_of_some_cases_keeps_the_other_cases_of_the_run_before(tmp_path, m
     assert "| demo | demo time | 4.1 s | met |" in page and "5.9 s" not in page
     assert "| overhead | daemon / plain loop | 0.280 | met |" in page
     assert "### Daemon overhead per iteration (`bench/overhead.py`" in page
-    assert "Earlier, for overhead (not in the run above): `python bench/run.py --gpu` " \
+    assert "Earlier, for overhead: `python bench/run.py --gpu` " \
            "(finished): 2026-11-28 20:14 UTC" in page
     assert page.count("### The demo's time") == 1 and page.count(gpu_run.BEGIN) == 1
     assert (tmp_path / "results" / "gpu" / "cases" / "overhead" / "overhead.csv").exists()
-    # Once every case of the earlier run is run again, nothing of it is left.
+    # Overhead run again alone: the demo is the second run's, and nothing names the first.
     again = second / "cases" / "overhead" / "overhead.csv"
     again.parent.mkdir(parents=True)
     again.write_text("round,ratio\n0,0.27\n")
-    overhead.files = [again]
+    overhead.files, overhead.targets = [again], [Target("daemon / plain loop", "0.270", True)]
+    third = HEAD | {"when": "2026-11-30 01:20 UTC"}
+    (second / "summary.md").write_text(gpu_run.section([overhead], second, third, True))
+    gpu_run.splice(second, docs)
+    page = docs.read_text()
+    assert "| overhead | daemon / plain loop | 0.270 | met |" in page
+    assert "| demo | demo time | 4.1 s | met |" in page
+    assert "Earlier, for demo: `python bench/run.py --gpu` (finished): 2026-11-27 15:00" in page
+    assert "2026-11-28 20:14" not in page and page.count("Earlier, for") == 1
     (second / "summary.md").write_text(gpu_run.section(
         [_result(second, "4.0 s"), overhead], second, HEAD, True))
     gpu_run.splice(second, docs)
     assert "Earlier, for" not in docs.read_text()
+
+
+def test_a_failure_message_of_several_lines_stays_in_its_table_row(tmp_path):
+    failed = Result("frozen", "frozen", [Target("case ran", "FAILED: RpcError:\n\tstatus = "
+                                                 "RESOURCE_EXHAUSTED | limit", False)])
+    text = gpu_run.section([failed], tmp_path, HEAD, True)
+    row = [ln for ln in text.splitlines() if ln.startswith("| frozen |")]
+    assert row == ["| frozen | case ran | FAILED: RpcError: status = RESOURCE_EXHAUSTED \\| "
+                   "limit | MISSED |"]

@@ -57,6 +57,14 @@ def test_each_gpu_gets_the_workers_its_own_memory_holds():
     assert [p.cuda for p in named_twice] == ["0", "0"]  # --devices 0,0 as before
 
 
+def test_a_count_asked_for_does_not_read_the_free_memory():
+    """`matopt demo`'s private daemon asks for one worker; nvidia-smi is not run for it."""
+    def unread(device):
+        raise AssertionError(f"free memory of {device} read")
+    places = devices.placements(["0"], None, None, [0, 1], 1, DEFAULT_SAMPLES, unread)
+    assert [p.cuda for p in places] == ["0"]
+
+
 def test_a_cpu_only_host_keeps_one_worker_unless_told():
     assert [(p.cuda, p.cores, p.sizing) for p in devices.placements(
         [], None, "llvm_ad_rgb", [0, 1])] == [(None, (0, 1), "")]

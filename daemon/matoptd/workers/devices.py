@@ -133,8 +133,10 @@ def placements(devices: list[str] | None, workers: int | None, variant: str | No
         out = []
         for d in dict.fromkeys(devices):  # a device named twice: --devices 0,0
             named = devices.count(d)
-            size = sizing.for_device(free_memory(d), max_samples,
-                                     named if named > 1 else per_device)
+            asked = named if named > 1 else per_device
+            # nvidia-smi is read only when the memory decides (it takes a while on some hosts)
+            free = free_memory(d) if asked is None else None
+            size = sizing.for_device(free, max_samples, asked)
             out += [Placement(d, tuple(cores), len(cores), size.why)] * size.count
         return out
     if per_device is not None and workers is None:
