@@ -18,6 +18,7 @@ from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.linear_extinction import LinearExtinction
 from matoptd.engine.choices.log_space import LogSpace
 from matoptd.engine.choices.medium_constant_rate import MediumConstantRate
+from matoptd.engine.choices.roughness_constant_rate import RoughnessConstantRate
 from matoptd.engine.choices.slow_interface_width import SlowInterfaceWidth
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
 from matoptd.engine.records import ParamRecord
@@ -35,8 +36,10 @@ def _settings(**choices: str) -> api.JobSettings:
 
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
-    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == ["gauss_newton"]
+    assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
+        "roughness_constant_rate", "gauss_newton"]  # the candidates, off unless named
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
+    assert _settings(all="on").choice_on("roughness_constant_rate")
     off = _settings(eta_differences="off")
     assert not off.choice_on("eta_differences") and off.choice_on("log_space")
     plain = _settings(all="off", depth="on")
@@ -116,6 +119,46 @@ def _interface(alpha_rate: float | None = None, medium: bool = True, **choices: 
         records[key].rate_given = False  # the listed rates
     records[GRID].kind = "volume_grid"
     return settings, records
+
+
+ROUGHNESS, BASE = "bunny.roughness.value", "bunny.base_color.value"
+
+
+def _principled(roughness_rate: float | None = None, eta: bool = True, **choices: str):
+    """A principled BSDF's roughness, base colour and (``eta``) eta; the roughness at the
+    listed width rate unless ``roughness_rate`` is given."""
+    params = [api.ParameterSetting(ROUGHNESS, roughness_rate or 0.2, 0.0, 1.0),
+              api.ParameterSetting(BASE, 0.03, 0.0, 1.0)]
+    if eta:
+        params.append(api.ParameterSetting("bunny.eta", 0.01, 1.001, 4.0))
+    settings = api.JobSettings(api.SceneInput("k", "s.xml", {}, {}, "s.xml"), [], params,
+                               choices=choices)
+    records = _records(settings, {ROUGHNESS: np.array([0.5]), BASE: np.full(3, 0.5),
+                                  "bunny.eta": np.array([1.55])})
+    records[ROUGHNESS].rate_given = roughness_rate is not None
+    return settings, records
+
+
+def test_a_principled_roughness_beside_eta_keeps_its_full_rate_only_when_named():
+    settings, records = _principled(roughness_constant_rate="on")
+    choice = RoughnessConstantRate(settings)
+    _set_up([choice], settings, records)
+    assert choice.on and choice.keys == [ROUGHNESS]
+    assert [k for k, r in records.items() if not r.decays] == [ROUGHNESS]
+    # By default it is off, says what it would do, and the roughness decays.
+    settings, records = _principled()
+    choice = RoughnessConstantRate(settings)
+    _set_up([choice], settings, records)
+    assert not choice.on and choice.applies and "decays with the schedule" in choice.why
+    assert all(r.decays for r in records.values())
+    # Without an eta beside it, with a rate the job gave, or a rough dielectric's alpha (where
+    # Table 4 did worse kept whole), it has nothing to keep.
+    for settings, records in (_principled(eta=False, roughness_constant_rate="on"),
+                              _principled(0.05, roughness_constant_rate="on"),
+                              _interface(roughness_constant_rate="on")):
+        choice = RoughnessConstantRate(settings)
+        _set_up([choice], settings, records)
+        assert not choice.applies and all(r.decays for r in records.values())
 
 
 def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_does():
@@ -203,9 +246,11 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     choices = {c.name: c for c in job.choices}
     assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
     assert "eta_hold" not in choices
-    assert all(c.on == (name != "gauss_newton") and c.switchable and c.why
+    candidates = ("gauss_newton", "roughness_constant_rate")  # off unless named
+    assert all(c.on == (name not in candidates) and c.switchable and c.why
                for name, c in choices.items())
     assert "Adam" in choices["gauss_newton"].why  # off unless named: what it would do instead
+    assert "decays with the schedule" in choices["roughness_constant_rate"].why
     assert "relative" in choices["log_space"].why
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
     assert choices["eta_differences"].seconds_per_iteration >= 0

@@ -53,6 +53,8 @@ CHOICES = {
     "medium_constant_rate": "a homogeneous medium's albedo and extinction, both selected and "
                             "given no rate, stepped at their full rate to the end (the "
                             "schedule's decay not applied to them)",
+    "roughness_constant_rate": "a principled roughness beside a selected eta, given no rate, "
+                               "stepped at its full rate to the end; off unless turned on",
     "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
                        "(0.0318) while Adam steps on below it",
     "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "
@@ -75,7 +77,7 @@ CHOICES = {
               "passes: no Python tracing per iteration; same results",
 }
 # Choices a job turns on by name (or with ALL_CHOICES): candidates until the matrix decides.
-OFF_UNLESS_NAMED = ("gauss_newton",)
+OFF_UNLESS_NAMED = ("gauss_newton", "roughness_constant_rate")
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")

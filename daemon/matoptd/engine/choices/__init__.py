@@ -31,14 +31,15 @@ from .linear_extinction import LinearExtinction
 from .log_space import LogSpace
 from .medium_constant_rate import MediumConstantRate
 from .multires import Multires
+from .roughness_constant_rate import RoughnessConstantRate
 from .roughness_floor import RoughnessFloor
 from .slow_interface_width import SlowInterfaceWidth
 from .smoothness import Smoothness
 
 REGISTRY: tuple[type[Choice], ...] = (
     FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, LinearExtinction,
-    SlowInterfaceWidth, MediumConstantRate, RoughnessFloor, ExposureGains, Smoothness, EtaHold,
-    EtaDifferences, GaussNewton, Frozen)
+    SlowInterfaceWidth, MediumConstantRate, RoughnessConstantRate, RoughnessFloor,
+    ExposureGains, Smoothness, EtaHold, EtaDifferences, GaussNewton, Frozen)
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"
