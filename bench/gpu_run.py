@@ -254,6 +254,11 @@ def _split(block: str) -> tuple[list[str], list[str], dict[str, str]]:
     return head, rows, subsections
 
 
+def _own(head: list[str]) -> str:
+    """A section's line about its own run (as written, or as rewritten by hand)."""
+    return " ".join(ln for ln in head if ln.strip() and not ln.startswith(("#", "Earlier, for ")))
+
+
 def merge(before: str, after: str) -> str:
     """``after``'s section, with the cases only ``before`` has appended as they were, each
     run they come from named in an "Earlier, for CASES: ..." line."""
@@ -270,12 +275,11 @@ def merge(before: str, after: str) -> str:
         if m:
             runs.append((m.group(1).split(", "), m.group(2)))
     older = {c for cases, _ in runs for c in cases}
-    own = " ".join(ln for ln in head_b if ln.startswith("`"))
-    runs.insert(0, ([c for c in subs_b if c not in older], own))
+    runs.insert(0, ([c for c in subs_b if c not in older], _own(head_b)))
     notes = [f"Earlier, for {', '.join(left)}: {line}" for cases, line in runs
              if (left := [c for c in cases if c in kept])]
     rows = rows_a + [r for r in rows_b if r.split("|")[1].strip() in kept]
-    lines = [BEGIN, "## GPU run", "", *[ln for ln in head_a if ln.startswith("`")],
+    lines = [BEGIN, "## GPU run", "", _own(head_a),
              *[x for note in notes for x in ("", note)], "",
              "| case | figure | result | met |", "|---|---|---|---|", *rows]
     for name, part in list(subs_a.items()) + [(n, subs_b[n]) for n in kept]:

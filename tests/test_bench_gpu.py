@@ -149,6 +149,9 @@ def test_a_run_of_some_cases_keeps_the_other_cases_of_the_run_before(tmp_path, m
     (first / "summary.md").write_text(gpu_run.section([_result(first, "5.9 s"), overhead],
                                                       first, earlier, True))
     gpu_run.splice(first, docs)
+    # The run's line rewritten by hand on the page is the one a later splice keeps.
+    docs.write_text(docs.read_text().replace("`python bench/run.py --gpu` (finished): 2026-11-28",
+                                             "One run on a loan, 2026-11-28"))
     second.mkdir(parents=True)
     (second / "summary.md").write_text(gpu_run.section([_result(second, "4.1 s")], second,
                                                        HEAD, True))
@@ -157,8 +160,7 @@ def test_a_run_of_some_cases_keeps_the_other_cases_of_the_run_before(tmp_path, m
     assert "| demo | demo time | 4.1 s | met |" in page and "5.9 s" not in page
     assert "| overhead | daemon / plain loop | 0.280 | met |" in page
     assert "### Daemon overhead per iteration (`bench/overhead.py`" in page
-    assert "Earlier, for overhead: `python bench/run.py --gpu` " \
-           "(finished): 2026-11-28 20:14 UTC" in page
+    assert "Earlier, for overhead: One run on a loan, 2026-11-28 20:14 UTC" in page
     assert page.count("### The demo's time") == 1 and page.count(gpu_run.BEGIN) == 1
     assert (tmp_path / "results" / "gpu" / "cases" / "overhead" / "overhead.csv").exists()
     # Overhead run again alone: the demo is the second run's, and nothing names the first.
