@@ -373,7 +373,7 @@ def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
         scene = create_scene(own, {"g.xml": glass(1.5, alpha=0.01).encode()}, "g.xml")
         ref = own.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=128)).images[0]
         eta = "ball.bsdf.eta"
-        spec = pb.JobSpec(scene=scene.name, iterations=120, min_error=0,
+        spec = pb.JobSpec(scene=scene.name, iterations=160, min_error=0,
                           references=[pb.Reference(blob=ref.exr_blob)],
                           parameters=[pb.ParameterSpec(key=eta, initial_value=[1.35])])
         whole = own.jobs.CreateJob(pb.CreateJobRequest(spec=spec))
@@ -384,8 +384,9 @@ def test_a_paused_job_goes_on_with_the_choices_it_would_have_had(tmp_path):
         at_pause = wait_state(own, paused.name, (pb.JOB_STATE_PAUSED,))
         at = at_pause.iteration
         # Paused before its end: a step call runs ~0.25 s of iterations past the request, which
-        # on a replayed recording is up to ~20 of them; 60 leave room on a loaded machine.
-        assert 60 <= at < 120
+        # on a replayed recording is up to ~20 of them; 100 leave room on a loaded machine
+        # (60 of 120 did not, once).
+        assert 60 <= at < 160
         # ... and after eta went sparse (else the comparison proves nothing)
         sparse = re.search(r"(\d+) iterations on the kept mean", next(
             c.why for c in at_pause.choices if c.name == "eta_differences"))
