@@ -19,14 +19,16 @@ are many and each is seen by few pixels. The cells of bench/defaults_matrix.py i
 from __future__ import annotations
 
 from .. import parameters
-from .base import Choice
+from .constant_rate import ConstantRate
 
 PAIR = {"albedo", "sigma_t"}  # the two a medium's brightness can come from
 
 
-class MediumConstantRate(Choice):
+class MediumConstantRate(ConstantRate):
     name = "medium_constant_rate"
-    writes = ("decays",)
+    why_on = ("stepped at their full rate to the end (no decay): the decay stops a medium's "
+            "albedo and extinction short along the valley they share")
+    why_off = "decay with the schedule, as every variable does"
 
     def select(self, ctx, records):
         # The valley is the pair's: a medium with only one of them selected, or a rate the
@@ -38,13 +40,3 @@ class MediumConstantRate(Choice):
                     and parameters.homogeneous_medium_property(k, r.kind)):
                 pairs.setdefault(k[:k.rindex(name)], []).append(k)
         return [k for keys in pairs.values() if len(keys) == len(PAIR) for k in keys]
-
-    def setup(self, ctx, records, state) -> None:
-        self.applies = bool(records)
-        keys = ", ".join(sorted(records))
-        self.why = (f"{keys} stepped at their full rate to the end (no decay): the decay stops "
-                    "a medium's albedo and extinction short along the valley they share"
-                    if self.on else f"{keys} decay with the schedule, as every variable does")
-        if self.on:
-            for r in records.values():
-                r.decays = False

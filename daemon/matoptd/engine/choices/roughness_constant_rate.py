@@ -18,12 +18,16 @@ applies to): ``--choice roughness_constant_rate=on``.
 from __future__ import annotations
 
 from .. import parameters
-from .base import Choice
+from .constant_rate import ConstantRate
 
 
-class RoughnessConstantRate(Choice):
+class RoughnessConstantRate(ConstantRate):
     name = "roughness_constant_rate"
-    writes = ("decays",)
+    why_on = ("stepped at its full rate to the end (no decay): the decay stops a principled "
+            "roughness short of the specular limit, where eta and the base colour make up "
+            "for the wider lobe")
+    why_off = ("decays with the schedule, as every variable does (on: at its full rate to "
+               "the end)")
 
     def select(self, ctx, records):
         # The width beside an eta the job also steps, and given no rate: a rate the job gave
@@ -33,15 +37,3 @@ class RoughnessConstantRate(Choice):
         widths = {w for e in etas for w in parameters.microfacet_widths(e, records)}
         return [k for k in sorted(widths) if parameters.property_name(k) == "roughness"
                 and not records[k].rate_given]
-
-    def setup(self, ctx, records, state) -> None:
-        self.applies = bool(records)
-        keys = ", ".join(sorted(records))
-        self.why = (f"{keys} stepped at its full rate to the end (no decay): the decay stops a "
-                    "principled roughness short of the specular limit, where eta and the base "
-                    "colour make up for the wider lobe"
-                    if self.on else f"{keys} decays with the schedule, as every variable does "
-                    "(on: at its full rate to the end)")
-        if self.on:
-            for r in records.values():
-                r.decays = False
