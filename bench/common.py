@@ -302,6 +302,24 @@ def reference(client: mc.Client, scene: pb.Scene, spp: int, work: Path) -> tuple
     return image.exr_blob, path
 
 
+def bundle_scene(client: mc.Client, xml: Path) -> pb.Scene:
+    """A scene from an XML file and the files beside it it names, uploaded as a user would."""
+    main, files = mc.upload_bundle(client, xml)
+    return client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+
+
+def every_reference(client: mc.Client, xml: Path, spp: int
+                    ) -> tuple[list[pb.Image], dict[int, Path]]:
+    """The references of every sensor of the scene in ``xml``, rendered by the daemon: the
+    images (their EXR blobs, for jobs) and local copies beside ``xml`` (for plain loops)."""
+    images = list(client.scenes.RenderScene(pb.RenderSceneRequest(
+        name=bundle_scene(client, xml).name, spp=spp, seed=12345)).images)
+    paths = {i.sensor: xml.parent / f"ref{i.sensor}.exr" for i in images}
+    for image in images:
+        mc.download_blob(client, image.exr_blob, paths[image.sensor])
+    return images, paths
+
+
 @dataclass
 class JobRun:
     """A finished job with its history, and when the client saw each iteration arrive."""
@@ -484,6 +502,11 @@ def spread(values: Sequence[float], fmt: str = "{:.3f}") -> str:
         return "n/a"
     return (f"{fmt.format(median(values))} ({fmt.format(min(values))}-"
             f"{fmt.format(max(values))}, n={len(values)})")
+
+
+def by_method(rows: Sequence[dict], methods: Sequence[str]) -> dict[str, dict[str, list]]:
+    """Per method, each column of its rows (one row per seed): method -> column -> values."""
+    return {m: {k: [r[k] for r in rows if r["method"] == m] for k in rows[0]} for m in methods}
 
 
 def write_csv(path: Path, rows: Sequence[dict]) -> Path:

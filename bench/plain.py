@@ -82,6 +82,22 @@ def mitsuba(variant: str):
     return mi
 
 
+def read_references(mi, paths: dict[int, Path]) -> dict:
+    """Each sensor's reference as a loop compares renders with it: the EXR's RGB."""
+    import numpy as np
+    return {s: mi.TensorXf(np.array(mi.Bitmap(str(p)), dtype=np.float32)[..., :3])
+            for s, p in paths.items()}
+
+
+def iterations(count: int, began: float, seconds: float = 0.0, cap: int = 10):
+    """0, 1, ...: ``count`` iterations; with ``seconds``, as many as begin within that time
+    of ``began`` (at most ``cap`` times ``count``), for a loop run at equal time."""
+    for it in range(count * cap if seconds else count):
+        if seconds and time.perf_counter() - began >= seconds:
+            return
+        yield it
+
+
 def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
     """The tutorial loop; the clock starts before the scene is loaded, as the daemon's does."""
     mi = mitsuba(variant)
@@ -93,8 +109,7 @@ def run(spec: PlainSpec, variant: str) -> list[PlainIteration]:
     integrator = (mi.load_dict({"type": spec.integrator, "max_depth": spec.max_depth,
                                 **spec.integrator_props})
                   if spec.integrator else scene.integrator())
-    references = {s: mi.TensorXf(np.array(mi.Bitmap(str(path)), dtype=np.float32)[..., :3])
-                  for s, path in {0: spec.reference, **spec.more_references}.items()}
+    references = read_references(mi, {0: spec.reference, **spec.more_references})
     params = mi.traverse(scene)
     params.keep(list(spec.start))
     opt = mi.ad.Adam(lr=spec.rate)

@@ -41,7 +41,7 @@ import gpu_run  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
-         "grids", "tutorials", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
+         "grids", "tutorials", "shape_tutorial", "switching", "worker_restart", "two_workers", "gpu_packing", "geometry", "scheduling",
          "ray_cluster",
          "thesis_tables", "starts", "real_scenes", "defaults_matrix", "information", "calibration"]
 DOCS = common.ROOT / "docs" / "benchmarks.md"

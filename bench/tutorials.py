@@ -127,17 +127,14 @@ def tutorial_loop(xml: Path, references: dict[int, Path], seed: int, variant: st
 
     began = time.perf_counter()
     scene = mi.load_file(str(xml))
-    refs = {s: mi.TensorXf(np.array(mi.Bitmap(str(p)), dtype=np.float32)[..., :3])
-            for s, p in references.items()}
+    refs = plain.read_references(mi, references)
     params = mi.traverse(scene)
     opt = mi.ad.Adam(lr=RATE)
     opt[KEY] = params[KEY]
     params.update(opt)
     sensors = scene.sensors()
     done = 0
-    for it in range(ITERATIONS * EQUAL_TIME_CAP if seconds else ITERATIONS):
-        if seconds and time.perf_counter() - began >= seconds:
-            break
+    for it in plain.iterations(ITERATIONS, began, seconds, EQUAL_TIME_CAP):
         for s in range(VIEWS):
             image = mi.render(scene, params, sensor=sensors[s], spp=SPP, seed=seed * 1000 + it)
             loss = dr.mean(dr.square(image - refs[s]), axis=None)
@@ -169,16 +166,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     xml.write_text(scene_xml("start.vol", False))
     truth = truth_cells(volume)
 
-    main, files = mc.upload_bundle(client, folder / "reference.xml")
-    ref_scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
-    refs = client.scenes.RenderScene(pb.RenderSceneRequest(
-        name=ref_scene.name, spp=REF_SPP, seed=12345)).images
-    paths = {}
-    for image in refs:
-        paths[image.sensor] = folder / f"ref{image.sensor}.exr"
-        mc.download_blob(client, image.exr_blob, paths[image.sensor])
-    main, files = mc.upload_bundle(client, xml)
-    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    refs, paths = common.every_reference(client, folder / "reference.xml", REF_SPP)
+    scene = common.bundle_scene(client, xml)
 
     def daemon(seed: int, preset: bool) -> tuple[np.ndarray, float, int, float]:
         param = pb.ParameterSpec(key=KEY)
@@ -214,12 +203,9 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                          "rmse": float(np.sqrt(np.mean((got - truth) ** 2))),
                          "mean": float(got.mean())})
     csv = common.write_csv(settings.out / "tutorials.csv", rows)
-    of = {name: [r for r in rows if r["method"] == name] for name in methods}
-    rmse = {n: [r["rmse"] for r in rs] for n, rs in of.items()}
-    mean = {n: [r["mean"] for r in rs] for n, rs in of.items()}
-    seconds = {n: [r["seconds"] for r in rs] for n, rs in of.items()}
-    walls = {n: [r["wall"] for r in rs] for n, rs in of.items()}
-    counts = {n: [r["iterations"] for r in rs] for n, rs in of.items()}
+    of = common.by_method(rows, list(methods))
+    rmse, mean, seconds, walls, counts = ({n: of[n][k] for n in methods} for k in (
+        "rmse", "mean", "seconds", "wall", "iterations"))
     met = common.median(rmse["daemon"]) <= common.median(rmse[EQUAL_TIME])
     lines = [f"{len(seeds)} seed(s), {ITERATIONS} iterations x {VIEWS} cameras at {SPP} spp, "
              f"{RES}x{RES}, a {SIDE}^3 grid from {START}; the truth (volume.vol) resampled to "
