@@ -117,8 +117,10 @@ def _median_time(table: rs.Table, runs: list[rs.Run], threshold: float) -> float
 
 def won(table: rs.Table, cell: Cell) -> int:
     """Seeds on which the defaults end with a worst error at most the plain loop's at equal
-    time: both draw the same samples per iteration, so a seed pairs them. With the seeds'
-    spread as wide as Table 4's (a factor of five), a median of three can fall either way."""
+    time: both draw the same samples per iteration, so a seed pairs their samples. It does
+    not pair their outcomes: rounding differs from run to run and the noisy steps carry it
+    on (docs/concepts.md, "Seeds"), so each side's end is a draw. With the seeds' spread as
+    wide as Table 4's (a factor of five), a median of three can fall either way."""
     equal = {r.seed: _worst(table, r) for r in cell.of(rs.EQUAL_TIME)}
     return sum(_worst(table, r) <= equal[r.seed] for r in cell.of("daemon") if r.seed in equal)
 
