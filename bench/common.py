@@ -422,6 +422,16 @@ def require_success(run: JobRun, what: str) -> None:
                            f"{mc.state_name(run.job.state)}: {run.job.error}")
 
 
+def last_array(client: mc.Client, run: JobRun, folder: Path) -> "np.ndarray":
+    """The job's last value of its first parameter, one too large to travel inline (a grid,
+    vertex positions): downloaded into ``folder`` and read."""
+    import numpy as np
+    result = client.jobs.GetJobResult(pb.GetJobResultRequest(name=run.job.name,
+                                                             which=pb.WHICH_LAST))
+    return np.load(mc.download_blob(client, result.parameters[0].blob,
+                                    folder / f"{run.job.name.split('/')[-1]}.npy"))
+
+
 def wall_spec(scene: pb.Scene, ref_blob: str, *, iterations: int, spp: int,
               schedule: int = pb.SCHEDULE_CONSTANT, seed: int = 0) -> pb.JobSpec:
     """The overhead case's job: the Cornell box's red and green walls from grey, Adam 0.03,

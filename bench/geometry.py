@@ -129,12 +129,8 @@ def large_steps(settings: Settings, server: common.Daemon, work: Path
                     choices={} if name == "default" else {"large_steps": "off"})
                 run_ = common.run_job(client, spec)
                 common.require_success(run_, f"geometry, large steps {name}")
-                last = client.jobs.GetJobResult(pb.GetJobResultRequest(
-                    name=run_.job.name, which=pb.WHICH_LAST))
-                got = mc.download_blob(client, last.parameters[0].blob,
-                                       folder / f"{name}{seed}.npy")
-                ends[name].append(chamfer(np.load(got).reshape(-1, 3), box_like(sphere),
-                                          faces))
+                got = common.last_array(client, run_, folder).reshape(-1, 3)
+                ends[name].append(chamfer(got, box_like(sphere), faces))
                 rows.append({"job": f"large steps: {name}", "vertices": len(sphere),
                              "seed": seed, "chamfer": ends[name][-1]})
         met &= common.median(ends["default"]) < common.median(ends["plain"])

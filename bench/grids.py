@@ -94,10 +94,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
             references=[pb.Reference(blob=r.exr_blob, sensor=r.sensor) for r in refs],
             parameters=[param]))
         common.require_success(run_, "grids")
-        result = client.jobs.GetJobResult(pb.GetJobResultRequest(name=run_.job.name,
-                                                                 which=pb.WHICH_LAST))
-        return np.load(mc.download_blob(client, result.parameters[0].blob,
-                                        folder / f"{run_.job.name.split('/')[-1]}.npy"))
+        return common.last_array(client, run_, folder)
 
     def loop(seed: int) -> np.ndarray:
         its = plain.run(plain.PlainSpec(

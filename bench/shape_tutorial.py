@@ -33,7 +33,6 @@ import numpy as np
 import common
 import plain
 from common import Result, Settings, Target
-from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 
 RES, VIEWS, SPP, REF_SPP, ITERATIONS, SEEDS = 32, 8, 16, 256, 12, (0, 1, 2)
@@ -157,11 +156,8 @@ def run(settings: Settings, server: common.Daemon) -> Result:
             spec.schedule = pb.SCHEDULE_CONSTANT
         done = common.run_job(client, spec)
         common.require_success(done, "shape_tutorial")
-        result = client.jobs.GetJobResult(pb.GetJobResultRequest(name=done.job.name,
-                                                                 which=pb.WHICH_LAST))
-        got = np.load(mc.download_blob(client, result.parameters[0].blob,
-                                       folder / f"{done.job.name.split('/')[-1]}.npy"))
-        return got.reshape(-1, 3), done.history[-1].seconds, len(done.history)
+        got = common.last_array(client, done, folder).reshape(-1, 3)
+        return got, done.history[-1].seconds, len(done.history)
 
     methods = {
         "tutorial, naive": lambda s: tutorial_loop(xml, paths, s, server.variant, False),

@@ -33,7 +33,6 @@ import numpy as np
 import common
 import plain
 from common import Result, Settings, Target
-from matopt_client import client as mc
 from matopt_api.v1 import matopt_pb2 as pb
 from scenes import vol
 
@@ -182,10 +181,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
             spec.choices.update({"all": "off"})
         done = common.run_job(client, spec)
         common.require_success(done, "tutorials")
-        result = client.jobs.GetJobResult(pb.GetJobResultRequest(name=done.job.name,
-                                                                 which=pb.WHICH_LAST))
-        grid = np.load(mc.download_blob(client, result.parameters[0].blob,
-                                        folder / f"{done.job.name.split('/')[-1]}.npy"))
+        grid = common.last_array(client, done, folder)
         return grid, done.history[-1].seconds, len(done.history), done.wall
 
     methods = {"tutorial": lambda s: tutorial_loop(xml, paths, s, server.variant),
