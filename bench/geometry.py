@@ -47,8 +47,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     work.mkdir(parents=True, exist_ok=True)
     (work / "quad.obj").write_bytes(quad_obj())
     (work / "quad.xml").write_text(QUAD_IN_FRONT)
-    main, files = mc.upload_bundle(client, work / "quad.xml")
-    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    scene = common.bundle_scene(client, work / "quad.xml")
     ref_blob, _ = common.reference(client, scene, 128, work)
     truth = np.array(QUAD_CORNERS, dtype=np.float32)
     base = dict(scene=scene.name, references=[pb.Reference(blob=ref_blob)],
@@ -98,8 +97,7 @@ def blob_scene(client: mc.Client, work: Path, name: str, level: int = 3
     (folder / "blob.ply").write_bytes(mesh_ply(box_like(sphere), faces))
     xml = folder / "blob.xml"
     xml.write_text(mesh_in_views(OWN_RES, OWN_VIEWS))
-    main, files = mc.upload_bundle(client, xml)
-    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    scene = common.bundle_scene(client, xml)
     refs = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=64,
                                                            seed=12345)).images
     return folder, xml, scene, list(refs)

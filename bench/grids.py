@@ -71,8 +71,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     (folder / "sigma.vol").write_bytes(vol(truth))
     xml = folder / "grids.xml"
     xml.write_text(scene_xml())
-    main, files = mc.upload_bundle(client, xml)
-    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    scene = common.bundle_scene(client, xml)
     key = next(p.key for p in client.scenes.ListSceneParameters(pb.ListSceneParametersRequest(
         name=scene.name)).parameters if p.key.endswith("sigma_t.data"))
     refs = client.scenes.RenderScene(pb.RenderSceneRequest(name=scene.name, spp=REF_SPP,

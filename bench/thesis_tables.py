@@ -222,8 +222,7 @@ def measure(plan: Plan, settings: Settings, server: common.Daemon
     folder.mkdir(parents=True, exist_ok=True)
     for name, data in case.files.items():
         (folder / name).write_bytes(data)
-    main, files = mc.upload_bundle(client, folder / case.main)
-    scene = client.scenes.CreateScene(pb.CreateSceneRequest(main_file=main, files=files))
+    scene = common.bundle_scene(client, folder / case.main)
     try:
         listed = common.parameters(client, scene)
         ranges = {k: (listed[k].min, listed[k].max) for k in case.start}

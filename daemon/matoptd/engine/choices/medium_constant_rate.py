@@ -27,7 +27,7 @@ PAIR = {"albedo", "sigma_t"}  # the two a medium's brightness can come from
 class MediumConstantRate(ConstantRate):
     name = "medium_constant_rate"
     why_on = ("stepped at their full rate to the end (no decay): the decay stops a medium's "
-            "albedo and extinction short along the valley they share")
+              "albedo and extinction short along the valley they share")
     why_off = "decay with the schedule, as every variable does"
 
     def select(self, ctx, records):

@@ -8,8 +8,8 @@ sooner. Measured beside the defaults in one run each (benchmarks-history.md, 202
 the scene file's own depth, spp 8, a median worst gated error of 0.85% against 1.97% over 12
 seeds, though one seed ended at 10.7% (3.0% when run again); at max_depth 64, spp 16, 0.47%
 against 0.87% (4 seeds); at max_depth 8, spp 8 and 16 and the own depth, spp 16, ties
-(0.4-1.1% on both sides). A rough dielectric's alpha on Table 4
-did worse kept whole (4.3% against 2.3%), so this is the principled BSDF's roughness only.
+(0.4-1.1% on both sides). A rough dielectric's alpha on Table 4 did worse kept whole (4.3%
+against 2.3%), so this is the principled BSDF's roughness only.
 
 Off unless named: ``--choice roughness_constant_rate=on``. At max_depth 64, spp 8 it did
 worse (a median of 2.04% against 0.90% over 11 seeds, eta more than 2% off on 6): kept whole,
@@ -25,8 +25,8 @@ from .constant_rate import ConstantRate
 class RoughnessConstantRate(ConstantRate):
     name = "roughness_constant_rate"
     why_on = ("stepped at its full rate to the end (no decay): the decay stops a principled "
-            "roughness short of the specular limit, where eta and the base colour make up "
-            "for the wider lobe")
+              "roughness short of the specular limit, where eta and the base colour make up "
+              "for the wider lobe")
     why_off = ("decays with the schedule, as every variable does (on: at its full rate to "
                "the end)")
 
