@@ -68,11 +68,18 @@ def cells(settings: Settings) -> list[tuple[rs.Table, int, int]]:
     return [(t, d, s) for t in tables for d in depths(t) for s in spps]
 
 
+def scene_overrides(depth: int) -> dict[str, str]:
+    """An unbounded depth is the scene file as a user loads it: the daemon's ``depth`` choice
+    measures and cuts it. A depth set on the scene is the user's, which that choice leaves
+    as it stands, so -1 set explicitly would test a configuration no user gets by default."""
+    return {} if depth < 0 else {"max_depth": str(depth)}
+
+
 def measure(server: common.Daemon, settings: Settings, table: rs.Table, depth: int, spp: int,
             p: rs.Plan, references: dict) -> Cell:
     """The cell's runs; ``references``: (table, depth) -> reference, rendered once for all spp."""
     table = dataclasses.replace(table, plain_spp=spp)
-    prep = rs.prepare(server.client, table, p, settings, {"max_depth": str(depth)},
+    prep = rs.prepare(server.client, table, p, settings, scene_overrides(depth),
                       references.get((table.name, depth)))
     references[table.name, depth] = (prep.ref_blob, prep.ref_path)
     rs.run_plain(prep, p, 99, server.variant, rs.WARM_UP)  # kernels compiled on both sides

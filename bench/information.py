@@ -51,6 +51,9 @@ from common import Result, Settings, Target
 from defaults_matrix import cells
 
 NEEDS_DAEMON = False
+# Table 2's unbounded depth as the daemon's ``depth`` choice cuts it at 128x96, 8-32 spp and
+# 100 iterations (a job's notes say so); the images a job renders are those at this depth.
+CUT_DEPTH = 16
 JSPP = 512                  # samples per pixel of each side of J's differences
 NOISE_RENDERS = 48          # renders at the job's spp for J^T Sigma J
 AD_RENDERS = 48             # back-propagated gradients at the job's spp for C_g
@@ -256,8 +259,7 @@ def run(settings: Settings, server: object) -> Result:
         xml = rs.loadable(settings.thesis_repo / table.path, settings.thesis_repo,
                           settings.work / "information" / f"{table.name}.xml")
         spps = [s for t, d, s in chosen if (t.name, d) == (name, depth)]
-        # an unbounded depth as the daemon's ``depth`` choice cuts it (Table 2's own)
-        rows += measure(mi, table, xml, depth if depth > 0 else 12, spps, film)
+        rows += measure(mi, table, xml, depth if depth > 0 else CUT_DEPTH, spps, film)
     result.lines.append(
         f"{variant}, film {film[0]}x{film[1]}; J by central differences at {JSPP} spp a side, "
         f"twice; the noise of {NOISE_RENDERS} renders at each spp at the truth; a job: "

@@ -83,3 +83,11 @@ def test_a_bad_candidate_stops_the_bench_before_any_case_runs(capsys):
             run.main(["--only", "defaults_matrix", "--with-choice", bad])
         assert stopped.value.code == 2
         assert said in capsys.readouterr().err
+
+
+def test_an_unbounded_cell_loads_the_scene_file_as_a_user_does_and_a_set_depth_is_set():
+    # A max_depth among a scene's overrides is the user's, which the daemon's depth choice
+    # leaves alone; the unbounded cell must leave it unset for that choice to be judged.
+    assert dm.scene_overrides(-1) == {}
+    assert dm.scene_overrides(8) == {"max_depth": "8"}
+    assert dm.scene_overrides(64) == {"max_depth": "64"}
