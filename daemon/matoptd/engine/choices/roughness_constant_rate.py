@@ -5,8 +5,9 @@ roughness short on the thesis's Table 2 scene: near the specular limit its gradi
 beside its noise, and where it stops (0.05-0.08 against a truth at the floor, 0.0316) eta and
 base_color make up for the wider lobe, a percent or two off. Kept whole, it reaches the floor
 sooner. Measured beside the defaults in one run each (benchmarks-history.md, 2026-11-30): at
-the scene file's own depth rendered unbounded (max_depth -1 set, so not cut), spp 8, a median worst gated error of 0.85% against 1.97% over 12
-seeds, though one seed ended at 10.7% (3.0% when run again); at max_depth 64, spp 16, 0.47%
+the scene file's own depth rendered unbounded (max_depth -1 set, so not cut), spp 8, a median
+worst gated error of 0.85% against 1.97% over 12 seeds, though one seed ended at 10.7% (3.0%
+when run again); at max_depth 64, spp 16, 0.47%
 against 0.87% (4 seeds); at max_depth 8, spp 8 and 16 and the own depth, spp 16, ties
 (0.4-1.1% on both sides). A rough dielectric's alpha on Table 4 did worse kept whole (4.3%
 against 2.3%), so this is the principled BSDF's roughness only.
