@@ -51,9 +51,10 @@ from common import Result, Settings, Target
 from defaults_matrix import cells
 
 NEEDS_DAEMON = False
-# Table 2's unbounded depth as the daemon's ``depth`` choice cuts it at 128x96, 8-32 spp and
-# 100 iterations (a job's notes say so); the images a job renders are those at this depth.
-CUT_DEPTH = 16
+# Each scene file's own depth as the daemon's ``depth`` choice cuts it at 128x96, 8-32 spp and
+# 100 iterations (a job's notes say so): the images a job of that cell renders.
+CUT_DEPTH = {"table2": 16, "table4": 32}
+BIAS_RENDERS = 4            # pairs at the cut and the file's own depth, JSPP each, same samples
 JSPP = 512                  # samples per pixel of each side of J's differences
 NOISE_RENDERS = 48          # renders at the job's spp for J^T Sigma J
 AD_RENDERS = 48             # back-propagated gradients at the job's spp for C_g
@@ -198,8 +199,19 @@ def worst_median(cov: np.ndarray, truth: np.ndarray, gated: np.ndarray, seed: in
     return float(np.median(np.max(np.stack(errors, 1), 1)))
 
 
+def cut_bias(images: Images, whole: Images, ja: np.ndarray, jb: np.ndarray) -> np.ndarray:
+    """The fit's bias from rendering at a cut depth against references at the whole depth:
+    -(J^T J)^-1 J^T b, b = I_cut - I_whole at the truth. On shared samples the two differ
+    only by the paths past the cut, so b is nearly free of noise."""
+    truth = images.table.truth
+    b = np.mean([images.render(truth, JSPP, 30_000 + i) - whole.render(truth, JSPP, 30_000 + i)
+                 for i in range(BIAS_RENDERS)], 0)
+    return -np.linalg.solve(0.5 * (ja.T @ jb + jb.T @ ja), 0.5 * (ja + jb).T @ b)
+
+
 def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
-            film: tuple[int, int]) -> list[dict]:
+            film: tuple[int, int], whole_depth: int | None = None) -> list[dict]:
+    """The cell's rows; ``whole_depth``: the scene file's own depth when ``depth`` is its cut."""
     images = Images(mi, table, xml, depth, film)
     comps = components(table)
     truth = np.array([table.truth[k][c] for k, c in comps])
@@ -207,6 +219,8 @@ def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
     began = time.perf_counter()
     ja, jb = images.jacobian(1000), images.jacobian(5000)
     j_seconds = time.perf_counter() - began
+    bias = (None if whole_depth is None else
+            cut_bias(images, Images(mi, table, xml, whole_depth, film), ja, jb))
     rows = []
     for spp in spps:
         renders = np.stack([images.render(table.truth, spp, 90_000 + i)
@@ -227,10 +241,13 @@ def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
             members = [i for i, (k, _) in enumerate(comps) if k == key]
             row[f"{_short(key)}, AD / images"] = float(np.mean(ratio[members]))
         for g, members in zip(table.targets, gated):
+            scale = np.sqrt(np.mean(truth[members] ** 2))
             for label, cov in (("one render", one), ("job", job), ("job, AD", ad)):
                 sd = np.sqrt(np.maximum(np.diag(cov)[members], 0.0))
-                row[f"{_short(g)}, {label}"] = float(np.sqrt(np.mean(sd ** 2))
-                                                     / np.sqrt(np.mean(truth[members] ** 2)))
+                row[f"{_short(g)}, {label}"] = float(np.sqrt(np.mean(sd ** 2)) / scale)
+            if bias is not None:  # rms over a colour's channels, as its spread
+                row[f"{_short(g)}, cut bias"] = float(np.sqrt(np.mean(bias[members] ** 2))
+                                                        / scale)
         # no worst of the AD part: a gradient that carries no information (eta's) leaves the
         # parameter where its start and its steps' wander do, which no spread describes
         for label, cov in (("one render", one), ("job", job)):
@@ -259,7 +276,10 @@ def run(settings: Settings, server: object) -> Result:
         xml = rs.loadable(settings.thesis_repo / table.path, settings.thesis_repo,
                           settings.work / "information" / f"{table.name}.xml")
         spps = [s for t, d, s in chosen if (t.name, d) == (name, depth)]
-        rows += measure(mi, table, xml, depth if depth > 0 else CUT_DEPTH, spps, film)
+        if depth > 0:
+            rows += measure(mi, table, xml, depth, spps, film)
+        else:  # the file as it stands, which the daemon cuts
+            rows += measure(mi, table, xml, CUT_DEPTH[name], spps, film, table.depth)
     result.lines.append(
         f"{variant}, film {film[0]}x{film[1]}; J by central differences at {JSPP} spp a side, "
         f"twice; the noise of {NOISE_RENDERS} renders at each spp at the truth; a job: "
@@ -269,12 +289,17 @@ def run(settings: Settings, server: object) -> Result:
         "worst gated parameter's error, as the matrix takes it. The job's AD gradients: the job's "
         "spread with each component's part as noisy as its back-propagated gradient, whose "
         f"variance over the images' own ({AD_RENDERS} gradients at the truth) is in brackets; "
-        "not settled: the images' own variance came out negative.")
+        "not settled: the images' own variance came out negative. "
+        + ", ".join(f"max_depth {d} is {t}'s file as the daemon's `depth` choice cuts it"
+                    for t, d in CUT_DEPTH.items())
+        + f"; the cut's bias: the fit's, rendering at the cut against references at the file's "
+        f"own depth (-(J^T J)^-1 J^T b, b the difference of {BIAS_RENDERS} pairs of renders at "
+        "the truth on shared samples); none where the depth is set.")
     result.lines.append("")
     result.lines.append("| table | max_depth | spp | gate | spread, one render | spread, the job's "
                         "renders | worst, one render | worst, the job's renders | spread, the "
-                        "job's AD gradients (their variance over the images') |")
-    result.lines.append("|---|---|---|---|---|---|---|---|---|")
+                        "job's AD gradients (their variance over the images') | the cut's bias |")
+    result.lines.append("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         table = next(t for t in rs.TABLES if t.name == row["table"])
         names = [_short(g) for g in table.targets]
@@ -286,7 +311,9 @@ def run(settings: Settings, server: object) -> Result:
             + ", ".join(f"{n} {100 * row[f'{n}, job']:.2f}%" for n in names) + " | "
             + f"{100 * row['worst, one render']:.2f}% | {100 * row['worst, job']:.2f}% | "
             + ", ".join(f"{n} {_ad(row[f'{n}, job, AD'], row[f'{n}, AD / images'])}"
-                        for n in names) + " |")
+                        for n in names) + " | "
+            + (", ".join(f"{n} {100 * row[f'{n}, cut bias']:.2f}%" for n in names)
+               if f"{names[0]}, cut bias" in row else "none") + " |")
         result.targets.append(Target(
             f"{row['table']} max_depth {row['max_depth']} spp {row['spp']}: the median worst "
             "gated error of a least-squares fit to the job's renders (context: the floor under "

@@ -73,3 +73,23 @@ def test_a_gradient_with_only_the_images_noise_is_one_renders_worth_and_a_noisie
     # a column's variance grows by the derivative noise's over its signal's: 1 + 0.25 / J_k^2
     assert np.allclose(information.back_propagated(noisy, images),
                        1 + 0.25 / np.array([1.0, 0.04]), rtol=0.15)
+
+
+def test_a_cut_that_darkens_the_images_along_a_column_biases_the_fit_by_that_columns_share():
+    """Rendering at a cut depth against references at the file's own: the fit moves to where
+    the cut images match the references, theta + d with J d = -b, from noisy estimates of J."""
+    rng = np.random.default_rng(2)
+    pixels = 3000
+    j = rng.standard_normal((pixels, 3)) * [1.0, 0.5, 0.2]
+    ja, jb = (j + 0.1 * rng.standard_normal(j.shape) for _ in range(2))
+    darkening = j @ np.array([-0.01, 0.0, 0.002])  # the cut's images: I_cut = I_whole + b
+
+    class Images:  # renders at the truth, the same samples at either depth
+        def __init__(self, b):
+            self.table, self.b = type("T", (), {"truth": {}})(), b
+
+        def render(self, truth, spp, seed):
+            return np.full(pixels, 0.3) + self.b
+
+    bias = information.cut_bias(Images(darkening), Images(0.0), ja, jb)
+    assert np.allclose(bias, [0.01, 0.0, -0.002], atol=5e-4), bias

@@ -28,8 +28,11 @@ lower than the defaults' on both tables (Table 4: 0.163 and 0.056 against 0.299 
 Table 2: 0.020 and 0.019 against 0.036 and 0.042), and on Table 2 it stayed within 2% from
 566-687 s, which neither the defaults nor the plain loop reached in 60 iterations. But an
 iteration cost 4.7-11x the defaults' (J by differences under prbvolpath and for eta), and on
-Table 4 none of the three reached 2%. Hence off unless named, until a matrix at equal time
-decides.
+Table 4 none of the three reached 2%. On the matrix's Table 4 cell at max_depth 8, spp 16
+(128x96, 3 seeds) it ended worse on every seed (9.7-14.8% against the defaults' 4.6-9.9%) in
+7 times their time: at 16 spp the differences of sigma_t, eta and alpha are noise, so H and g
+are too (docs/benchmarks-history.md, 2026-11-28). A default must win or tie in every cell it
+applies to, so it stays off unless named.
 """
 
 from __future__ import annotations
