@@ -175,8 +175,13 @@ def _ratio(x: float) -> str:
     return "not settled" if not np.isfinite(x) else f"{x:.1f}x"
 
 
+def _pct(x: float) -> str:
+    return "not settled" if not np.isfinite(x) else f"{100 * x:.2f}%"
+
+
 def _ad(spread_: float, ratio: float) -> str:
-    return "not settled" if not np.isfinite(ratio) else f"{100 * spread_:.2f}% ({ratio:.1f}x)"
+    return ("not settled" if not (np.isfinite(ratio) and np.isfinite(spread_))
+            else f"{100 * spread_:.2f}% ({ratio:.1f}x)")
 
 
 def image_blocks(film: tuple[int, int], size: int = BLOCK) -> np.ndarray:
@@ -243,8 +248,9 @@ def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
         for g, members in zip(table.targets, gated):
             scale = np.sqrt(np.mean(truth[members] ** 2))
             for label, cov in (("one render", one), ("job", job), ("job, AD", ad)):
-                sd = np.sqrt(np.maximum(np.diag(cov)[members], 0.0))
-                row[f"{_short(g)}, {label}"] = float(np.sqrt(np.mean(sd ** 2)) / scale)
+                var = np.diag(cov)[members]  # negative where J^T J did not settle: nan
+                row[f"{_short(g)}, {label}"] = (float(np.sqrt(np.mean(var)) / scale)
+                                                if np.all(var > 0) else float("nan"))
             if bias is not None:  # rms over a colour's channels, as its spread
                 row[f"{_short(g)}, cut bias"] = float(np.sqrt(np.mean(bias[members] ** 2))
                                                         / scale)
@@ -289,7 +295,7 @@ def run(settings: Settings, server: object) -> Result:
         "worst gated parameter's error, as the matrix takes it. The job's AD gradients: the job's "
         "spread with each component's part as noisy as its back-propagated gradient, whose "
         f"variance over the images' own ({AD_RENDERS} gradients at the truth) is in brackets; "
-        "not settled: the images' own variance came out negative. "
+        "not settled: the images' own variance, or the fit's, came out negative. "
         + ", ".join(f"max_depth {d} is {t}'s file as the daemon's `depth` choice cuts it"
                     for t, d in CUT_DEPTH.items())
         + f"; the cut's bias: the fit's, rendering at the cut against references at the file's "
@@ -307,8 +313,8 @@ def run(settings: Settings, server: object) -> Result:
                            if k.endswith("AD / images"))
         result.lines.append(
             f"| {row['table']} | {row['max_depth']} | {row['spp']} | {100 * row['gate']:.0f}% | "
-            + ", ".join(f"{n} {100 * row[f'{n}, one render']:.2f}%" for n in names) + " | "
-            + ", ".join(f"{n} {100 * row[f'{n}, job']:.2f}%" for n in names) + " | "
+            + ", ".join(f"{n} {_pct(row[f'{n}, one render'])}" for n in names) + " | "
+            + ", ".join(f"{n} {_pct(row[f'{n}, job'])}" for n in names) + " | "
             + f"{100 * row['worst, one render']:.2f}% | {100 * row['worst, job']:.2f}% | "
             + ", ".join(f"{n} {_ad(row[f'{n}, job, AD'], row[f'{n}, AD / images'])}"
                         for n in names) + " | "

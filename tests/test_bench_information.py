@@ -93,3 +93,9 @@ def test_a_cut_that_darkens_the_images_along_a_column_biases_the_fit_by_that_col
 
     bias = information.cut_bias(Images(darkening), Images(0.0), ja, jb)
     assert np.allclose(bias, [0.01, 0.0, -0.002], atol=5e-4), bias
+
+
+def test_a_spread_whose_variance_came_out_negative_reads_not_settled_not_zero():
+    assert information._pct(float("nan")) == "not settled"
+    assert information._pct(0.0123) == "1.23%"
+    assert information._ad(float("nan"), 2.0) == "not settled"
