@@ -19,8 +19,8 @@ the job's start, and the larger depth is taken. Table 2 of the thesis (unbounded
 16 spp, 100 iterations) measures 16; Table 4 (64) 32 (docs/benchmarks.md). The test is per
 pixel, while a cut darkens every pixel alike and so moves a brightness-like parameter more than
 one pixel's noise suggests. Measured, the cuts move a least-squares fit at the truth by 0.14%
-(Table 2's base_color) and 0.17% (Table 4's sigma_t), a fifth to two thirds of the spread
-the job's renders leave (bench/information.py).
+(Table 2's base_color; bench/information.py) and 0.17% (Table 4's sigma_t, J taken at its
+64; docs/benchmarks-history.md), a fifth to two thirds of the spread the job's renders leave.
 """
 
 from __future__ import annotations
