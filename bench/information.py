@@ -155,10 +155,15 @@ def meat(ja: np.ndarray, jb: np.ndarray, noise: np.ndarray, blocks: np.ndarray
     return out
 
 
+def bread(ja: np.ndarray, jb: np.ndarray) -> np.ndarray:
+    """J^T J from the products across J's two estimates, so J's own noise does not inflate it."""
+    return 0.5 * (ja.T @ jb + jb.T @ ja)
+
+
 def spread(ja: np.ndarray, jb: np.ndarray, images_meat: np.ndarray) -> np.ndarray:
     """Cov of the least-squares fit to one render, J^T Sigma J given: the sandwich, its
     bread from products across J's two estimates."""
-    h = np.linalg.inv(0.5 * (ja.T @ jb + jb.T @ ja))
+    h = np.linalg.inv(bread(ja, jb))
     return h @ images_meat @ h
 
 
@@ -211,7 +216,7 @@ def cut_bias(images: Images, whole: Images, ja: np.ndarray, jb: np.ndarray) -> n
     truth = images.table.truth
     b = np.mean([images.render(truth, JSPP, 30_000 + i) - whole.render(truth, JSPP, 30_000 + i)
                  for i in range(BIAS_RENDERS)], 0)
-    return -np.linalg.solve(0.5 * (ja.T @ jb + jb.T @ ja), 0.5 * (ja + jb).T @ b)
+    return -np.linalg.solve(bread(ja, jb), 0.5 * (ja + jb).T @ b)
 
 
 def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
