@@ -51,9 +51,6 @@ from common import Result, Settings, Target
 from defaults_matrix import cells
 
 NEEDS_DAEMON = False
-# Each scene file's own depth as the daemon's ``depth`` choice cuts it at 128x96, 8-32 spp and
-# 100 iterations (a job's notes say so): the images a job of that cell renders.
-CUT_DEPTH = {"table2": 16, "table4": 32}
 BIAS_RENDERS = 4            # pairs at the cut and the file's own depth, JSPP each, same samples
 JSPP = 512                  # samples per pixel of each side of J's differences
 NOISE_RENDERS = 48          # renders at the job's spp for J^T Sigma J
@@ -83,6 +80,14 @@ def components(table: rs.Table) -> list[tuple[str, int]]:
             for c in range(len(v))]
 
 
+def show(mi, params, values: dict[str, list[float]]) -> None:
+    """Sets the scene's parameters to ``values`` (a scalar, a colour, or eta's plain float)."""
+    for key, v in values.items():
+        params[key] = (v[0] if key.endswith("eta") else mi.Float(v[0]) if len(v) == 1
+                       else mi.Color3f(*v))
+    params.update()
+
+
 class Images:
     """The table's scene at its truth, at one depth, rendered at chosen values and samples."""
 
@@ -95,10 +100,7 @@ class Images:
 
     def render(self, values: dict[str, list[float]], spp: int, seed: int) -> np.ndarray:
         mi = self.mi
-        for key, v in values.items():
-            self.params[key] = (v[0] if key.endswith("eta") else mi.Float(v[0]) if len(v) == 1
-                                else mi.Color3f(*v))
-        self.params.update()
+        show(mi, self.params, values)
         return np.array(mi.render(self.scene, spp=spp, seed=seed), dtype=np.float64).ravel()
 
     def gradients(self, spp: int, reference: np.ndarray, seeds: range) -> np.ndarray:
@@ -219,6 +221,30 @@ def cut_bias(images: Images, whole: Images, ja: np.ndarray, jb: np.ndarray) -> n
     return -np.linalg.solve(bread(ja, jb), 0.5 * (ja + jb).T @ b)
 
 
+def job_cut(mi, table: rs.Table, xml: Path, spp: int, film: tuple[int, int]) -> int:
+    """The depth a job at ``spp`` renders the scene file at: the daemon's ``depth`` choice's
+    test with the integrator the daemon chooses and its samples (the scene loaded as the
+    matrix's jobs load it), at the file's values (the truth) and at the table's start, the
+    larger. So the rows are the job's configuration, not one copied from its notes."""
+    import drjit as dr
+    from matoptd.engine import integrator  # the engine's own, as a job makes it (variant set)
+    from matoptd.engine.choices.depth import larger_cut, least_depth
+    scene = mi.load_file(str(xml), integrator=table.integrator, resx=film[0], resy=film[1])
+    chosen = integrator.choose(scene, list(table.start))
+    params = mi.traverse(scene)
+    ones = {0: np.ones((film[1], film[0], 3))}
+
+    def at(values: dict[str, list[float]]):
+        def renders(d: int, seed: int) -> dict[int, np.ndarray]:
+            show(mi, params, values)
+            with dr.suspend_grad():
+                image = mi.render(scene, spp=spp, seed=seed,
+                                  integrator=integrator.make(chosen, d))
+            return {0: np.array(image, np.float32)[..., :3]}
+        return lambda least: least_depth(renders, ones, ITERATIONS, table.depth, least)
+    return larger_cut(at(table.truth), at(table.start), table.depth)[0]
+
+
 def measure(mi, table: rs.Table, xml: Path, depth: int, spps: list[int],
             film: tuple[int, int], whole_depth: int | None = None) -> list[dict]:
     """The cell's rows; ``whole_depth``: the scene file's own depth when ``depth`` is its cut."""
@@ -282,6 +308,7 @@ def run(settings: Settings, server: object) -> Result:
     film = settings.film or ((64, 48) if settings.quick else (128, 96))
     chosen = cells(settings)
     rows: list[dict] = []
+    cut_lines: list[str] = []
     for name, depth in dict.fromkeys((t.name, d) for t, d, _ in chosen):
         table = next(t for t, _, _ in chosen if t.name == name)
         xml = rs.loadable(settings.thesis_repo / table.path, settings.thesis_repo,
@@ -289,8 +316,14 @@ def run(settings: Settings, server: object) -> Result:
         spps = [s for t, d, s in chosen if (t.name, d) == (name, depth)]
         if depth > 0:
             rows += measure(mi, table, xml, depth, spps, film)
-        else:  # the file as it stands, which the daemon cuts
-            rows += measure(mi, table, xml, CUT_DEPTH[name], spps, film, table.depth)
+            continue
+        cuts: dict[int, list[int]] = {}  # the file as it stands, cut as a job at each spp cuts it
+        for spp in spps:
+            cuts.setdefault(job_cut(mi, table, xml, spp, film), []).append(spp)
+        for cut, at in cuts.items():
+            rows += measure(mi, table, xml, cut, at, film, table.depth)
+            cut_lines.append(f"{table.name}'s file cut to {cut} at spp "
+                             f"{', '.join(map(str, at))}")
     result.lines.append(
         f"{variant}, film {film[0]}x{film[1]}; J by central differences at {JSPP} spp a side, "
         f"twice; the noise of {NOISE_RENDERS} renders at each spp at the truth; a job: "
@@ -301,8 +334,8 @@ def run(settings: Settings, server: object) -> Result:
         "spread with each component's part as noisy as its back-propagated gradient, whose "
         f"variance over the images' own ({AD_RENDERS} gradients at the truth) is in brackets; "
         "not settled: the images' own variance, or the fit's, came out negative. "
-        + ", ".join(f"max_depth {d} is {t}'s file as the daemon's `depth` choice cuts it"
-                    for t, d in CUT_DEPTH.items())
+        + ("; ".join(cut_lines) + " (the daemon's `depth` choice's test, least_depth, "
+           "with a job's integrator and samples, at the truth and the start)" if cut_lines else "no file's own depth")
         + f"; the cut's bias: the fit's, rendering at the cut against references at the file's "
         f"own depth (-(J^T J)^-1 J^T b, b the difference of {BIAS_RENDERS} pairs of renders at "
         "the truth on shared samples); none where the depth is set.")

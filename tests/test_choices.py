@@ -14,6 +14,7 @@ import pytest
 from matopt_api.v1 import matopt_pb2 as pb
 from matoptd import settings as api
 from matoptd.engine.choices import REGISTRY, assign_keys
+from matoptd.engine.choices.depth import LADDER, larger_cut, least_depth
 from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.linear_extinction import LinearExtinction
 from matoptd.engine.choices.log_space import LogSpace
@@ -315,6 +316,46 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))
     assert abs(free[-1] - case.start[eta][0]) > 0.02
+
+
+def _bounces(noise: float, iterations: int):
+    """A fake renderer: pixel noise of one render's variance ``noise`` drawn by the seed, and
+    light from bounce k of 0.5^k per pixel, so a cut at d changes every pixel by the tail
+    sum_{k>d} 0.5^k = 0.5^d. Returns it and the least depth of LADDER the test should take."""
+    rng_shape = (4, 5, 3)
+
+    def renders(d: int, seed: int) -> dict[int, np.ndarray]:
+        tail = 0.0 if d < 0 else 0.5 ** d
+        grain = np.random.default_rng(seed).standard_normal(rng_shape) * np.sqrt(noise)
+        return {0: 1.0 - tail + grain}
+    # c(d) = 0.25^d against noise / iterations (the sample variance of 60 draws, near it)
+    expected = min(d for d in LADDER if 0.25 ** d < 0.5 * noise / iterations)
+    return renders, {0: np.ones(rng_shape)}, expected
+
+
+def test_the_depth_test_takes_the_least_cut_under_the_noise_of_the_jobs_mean():
+    """The `depth` choice's test on a renderer whose tail is known: the least depth of the
+    ladder whose cut changes the image by less than the job's mean's noise; more noise or
+    fewer iterations allow a shallower cut; a bounded depth keeps candidates below it, and
+    ``least`` those from it on. The start's cut wins only where it is deeper."""
+    renders, ones, expected = _bounces(1e-4, 100)
+    depth, change, noise = least_depth(renders, ones, 100, -1)
+    assert change < noise and 0.25 ** depth == pytest.approx(change, rel=1e-6)
+    assert depth in (expected, LADDER[LADDER.index(expected) + 1])  # noise's own estimate
+    assert least_depth(renders, ones, 100, -1, least=48)[0] == 48
+    shallow = least_depth(renders, ones, 1, -1)[0]
+    assert shallow < depth
+    assert least_depth(renders, ones, 100, 8) == (8, 0.0, pytest.approx(noise))  # none passes
+    # the scene's values first, then the start from that cut on: the larger one
+    calls = []
+
+    def at(value: int):
+        return lambda least: calls.append(least) or (value if value < 0 else max(value, least),
+                                                      0.0, 1.0)
+    assert larger_cut(at(16), at(24), -1)[0] == 24 and calls == [0, 16]
+    assert larger_cut(at(16), at(12), -1)[0] == 16
+    calls.clear()
+    assert larger_cut(at(-1), at(24), -1)[0] == -1 and calls == [0]  # the scene's depth stands
 
 
 UNBOUNDED = PRINCIPLED.replace(

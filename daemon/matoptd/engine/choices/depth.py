@@ -26,6 +26,7 @@ one pixel's noise suggests. Measured, the cuts move a least-squares fit at the t
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -37,6 +38,7 @@ from .base import Begun, Choice
 MEASURED_ABOVE = 16  # a bounded depth up to this stands as the scene says
 LADDER = (2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
 SEEDS = (0x5EED_0001, 0x5EED_0002)
+Measure = Callable[[int], tuple[int, float, float]]  # least -> (depth, change, noise)
 
 
 class Depth(Choice):
@@ -69,12 +71,11 @@ class Depth(Choice):
         if self.saved is not None:
             cut, change, noise = int(self.saved["depth"][0]), *map(float, self.saved["figures"])
         else:
-            with ctx.holding(self.scene_values):
-                cut, change, noise = measure(ctx, depth)
-            if cut != depth:  # the start may need more bounces than the scene's values
-                start, change_, noise_ = measure(ctx, depth, cut)
-                if start != cut:
-                    cut, change, noise = start, change_, noise_
+            def at_scene(least: int) -> tuple[int, float, float]:
+                with ctx.holding(self.scene_values):
+                    return measure(ctx, depth, least)
+            cut, change, noise = larger_cut(at_scene, lambda least: measure(ctx, depth, least),
+                                            depth)
         self.depth, self.figures = cut, (change, noise)
         self.setup_seconds = time.perf_counter() - began
         if cut != depth:
@@ -96,6 +97,16 @@ class Depth(Choice):
                 "figures": np.array(self.figures, np.float64)}
 
 
+def larger_cut(at_scene: Measure, at_start: Measure, depth: int) -> tuple[int, float, float]:
+    """The cut for the scene's own values, then for the job's start from that cut on (the
+    start may need more bounces): the larger, with its figures."""
+    cut = at_scene(0)
+    if cut[0] == depth:
+        return cut
+    start = at_start(cut[0])
+    return start if start[0] != cut[0] else cut
+
+
 def measure(ctx, depth: int, least: int = 0) -> tuple[int, float, float]:
     """(the depth to render at, the mean square change its cut makes, the noise level it was
     compared with), the scene as it is now; candidates from ``least`` on."""
@@ -107,13 +118,22 @@ def measure(ctx, depth: int, least: int = 0) -> tuple[int, float, float]:
                     for s in ctx.references}
 
     weights = {s: r.mask() for s, r in ctx.references.items()}
+    return least_depth(renders, weights, ctx.settings.iterations, depth, least)
+
+
+def least_depth(renders: Callable[[int, int], dict[int, np.ndarray]],
+                weights: dict[int, np.ndarray], iterations: int, depth: int,
+                least: int = 0) -> tuple[int, float, float]:
+    """The test itself, on any renderer: ``renders(d, seed)`` gives each sensor's image at
+    depth d, the same samples for the same seed; ``weights`` each sensor's pixel weights.
+    bench/information.py measures a job's cut with it."""
     total = sum(float(np.sum(w)) for w in weights.values())
 
     def mean(images: dict[int, np.ndarray]) -> float:
         return sum(float(np.sum(weights[s] * x)) for s, x in images.items()) / max(total, 1.0)
 
     a, b = renders(depth, SEEDS[0]), renders(depth, SEEDS[1])
-    noise = mean({s: (a[s] - b[s]) ** 2 / 2 for s in a}) / max(1, ctx.settings.iterations)
+    noise = mean({s: (a[s] - b[s]) ** 2 / 2 for s in a}) / max(1, iterations)
     candidates = [d for d in LADDER if d >= least and (depth < 0 or d < depth)]
     best, change = depth, 0.0
     lo, hi = 0, len(candidates) - 1
