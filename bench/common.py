@@ -88,6 +88,9 @@ class Settings:
     # defaults_matrix: the with_choices job in the defaults' place, judged as they are (the
     # plain loop at equal time runs for its time; no plain run at equal iterations)
     candidate_only: bool = False
+    # defaults_matrix: every run's values per iteration kept (defaults_matrix-paths.jsonl), so
+    # that an estimate made from a job's path (an average of its end) is judged on the same runs
+    paths: bool = False
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,14 +25,18 @@ The whole matrix (Table 2 x 3 depths + Table 4 x 2 depths, x 3 spp x 3 seeds) is
 adds a candidate default per seed (the defaults with that choice set) beside them: a choice is
 judged by the cells, not by the configuration it was tuned on. With ``--candidate-only`` the
 candidate takes the defaults' place and is judged as they are (the plain loop at equal time
-runs for its time), at two thirds of the cost.
+runs for its time), at two thirds of the cost. With ``--paths`` every run's values at every
+iteration go to defaults_matrix-paths.jsonl, so that an estimate made from a job's path (an
+average of its end, say) is judged on the very runs, not on new draws.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
+from pathlib import Path
 
 import common
 import real_scenes as rs
@@ -161,6 +165,22 @@ def judge(table: rs.Table, cell: Cell) -> tuple[str, bool, bool]:
     return row, met, held
 
 
+def path_rows(cell: Cell) -> list[dict]:
+    """A line per run of the cell: where it was (table, depth, spp), which side and seed, and
+    its values and seconds at every iteration (``--paths``)."""
+    return [{"table": cell.table, "depth": cell.depth, "spp": cell.spp, "method": r.method,
+             "seed": r.seed, "seconds": r.seconds, "values": r.paths} for r in cell.runs]
+
+
+def write_paths(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(json.dumps(row) + "\n" for row in rows))
+
+
+def read_paths(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line]
+
+
 def run(settings: Settings, server: common.Daemon) -> Result:
     result = Result("defaults_matrix", "The defaults on a matrix of depths and spp")
     extra = settings.with_choices and not settings.candidate_only  # the candidate's columns
@@ -174,6 +194,7 @@ def run(settings: Settings, server: common.Daemon) -> Result:
     todo = cells(settings)
     rows, csv = [], []
     met_cells, held_cells, references = 0, 0, {}
+    paths: list[dict] = []
     for table, depth, spp in todo:
         cell = measure(server, settings, table, depth, spp, p, references)
         row, met, held = judge(table, cell)
@@ -188,6 +209,9 @@ def run(settings: Settings, server: common.Daemon) -> Result:
                  "to_1pct": r.staying(table.targets, 0.01)} for r in cell.runs]
         # Written after every cell: a run stopped part way keeps the cells it finished.
         common.write_csv(settings.out / "defaults_matrix.csv", csv)
+        if settings.paths:
+            paths += path_rows(cell)
+            write_paths(settings.out / "defaults_matrix-paths.jsonl", paths)
     result.targets.append(Target(
         "cells where the defaults' worst final error <= the plain loop's at equal time and "
         "their time to 2% staying <= half the plain loop's (where it gets there)",

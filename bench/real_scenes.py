@@ -174,6 +174,7 @@ class Run:
     notes: list[str] = field(default_factory=list)
     integrator: str = ""
     choices: list = field(default_factory=list)  # pb.Choice of a daemon job
+    paths: list[dict[str, list[float]]] = field(default_factory=list)  # values per iteration
 
     def staying(self, keys, threshold: float) -> float | None:
         return time_staying(self.seconds, self.errors, keys, threshold)
@@ -255,7 +256,8 @@ def run_plain(prep: Prepared, p: Plan, seed: int, variant: str, iterations: int,
     times = [it.seconds for it in its]
     return Run(t.name, EQUAL_TIME if seconds else "plain", seed, common.per_iteration(times),
                times, errors, len(its), its[-1].values,
-               common.per_iteration([it.cpu for it in its]))
+               common.per_iteration([it.cpu for it in its]),
+               paths=[{k: np.ravel(v).tolist() for k, v in it.values.items()} for it in its])
 
 
 def daemon_spec(prep: Prepared, seed: int, iterations: int, choices: dict[str, str] | None = None,
@@ -294,7 +296,7 @@ def run_daemon(server: common.Daemon, prep: Prepared, method: str, spec: pb.JobS
                errors, len(job.history), values[-1], common.per_iteration(job.cpu_workers),
                list(job.job.notes),
                f"{job.job.integrator}: {job.job.integrator_reason}",
-               list(getattr(job.job, "choices", [])))
+               list(getattr(job.job, "choices", [])), values)
 
 
 def has_choices() -> bool:

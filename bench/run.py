@@ -208,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="real_scenes, defaults_matrix: also a daemon job per seed with this "
                    "choice set (e.g. gauss_newton=on) or JobSpec field (schedule=constant), "
                    "beside the defaults; stability: each stiff case again with it")
+    p.add_argument("--paths", action="store_true",
+                   help="defaults_matrix: keep every run's values per iteration "
+                        "(defaults_matrix-paths.jsonl in --out)")
     p.add_argument("--candidate-only", action="store_true",
                    help="defaults_matrix, stability: the --with-choice job in place of the "
                    "defaults, judged as they are (the plain loop at equal time runs for its "
@@ -245,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
                         dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
                         tuple(args.spp), tuple(args.depth),
                         args.tutorials_repo.resolve() if args.tutorials_repo else None,
-                        args.candidate_only)
+                        args.candidate_only, args.paths)
     if args.result_json:  # a case of --gpu, stopped at its cap with SIGTERM: say what finished
         signal.signal(signal.SIGTERM, _stopped)
     began = time.perf_counter()

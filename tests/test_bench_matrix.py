@@ -91,3 +91,20 @@ def test_an_unbounded_cell_loads_the_scene_file_as_a_user_does_and_a_set_depth_i
     assert dm.scene_overrides(-1) == {}
     assert dm.scene_overrides(8) == {"max_depth": "8"}
     assert dm.scene_overrides(64) == {"max_depth": "64"}
+
+
+def test_a_cells_paths_are_written_a_line_per_run_and_read_back_as_they_were(tmp_path):
+    """--paths: each run's values at every iteration, with where and which run it was."""
+    table = TABLES["table4"]
+    cell = _cell(table, [[0.1, 0.05], [0.2, 0.01]], [0.3, 0.02])
+    for n, r in enumerate(cell.runs):
+        r.paths = [{k: [0.1 * n + i] * len(v) for k, v in table.truth.items()}
+                   for i in range(len(r.seconds))]
+    file = tmp_path / "out" / "defaults_matrix-paths.jsonl"
+    dm.write_paths(file, dm.path_rows(cell))
+    back = dm.read_paths(file)
+    assert len(back) == len(cell.runs) == 6
+    for row, r in zip(back, cell.runs):
+        assert (row["table"], row["depth"], row["spp"], row["method"], row["seed"]) == (
+            "table4", 8, 16, r.method, r.seed)
+        assert row["values"] == r.paths and row["seconds"] == r.seconds
