@@ -335,7 +335,8 @@ def run(settings: Settings, server: object) -> Result:
         f"variance over the images' own ({AD_RENDERS} gradients at the truth) is in brackets; "
         "not settled: the images' own variance, or the fit's, came out negative. "
         + ("; ".join(cut_lines) + " (the daemon's `depth` choice's test, least_depth, "
-           "with a job's integrator and samples, at the truth and the start)" if cut_lines else "no file's own depth")
+           "with a job's integrator and samples, at the truth and the start)" if cut_lines
+           else "No cell at a scene file's own depth")
         + f"; the cut's bias: the fit's, rendering at the cut against references at the file's "
         f"own depth (-(J^T J)^-1 J^T b, b the difference of {BIAS_RENDERS} pairs of renders at "
         "the truth on shared samples); none where the depth is set.")
