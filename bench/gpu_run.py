@@ -93,6 +93,7 @@ def child(name: str, extra: tuple[str, ...], args, out: Path, cap: float) -> Res
         command += ["--deadline", f"{time.time() + cap - GRACE:.0f}"]
         command += [*(["--seeds", str(args.seeds)] if args.seeds else []),
                     *(["--tables", *args.tables] if args.tables else []),
+                    *(["--first-seed", str(args.first_seed)] if args.first_seed else []),
                     *(["--film", args.film] if args.film else []),
                     *(["--iterations", str(args.iterations)] if args.iterations else [])]
     began = time.perf_counter()
