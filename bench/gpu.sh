@@ -10,8 +10,9 @@
 #                                  repository may not hold.
 #   bench/gpu.sh device OUT [ARGS]  there: installs bench/.gpu/ into a new venv without any
 #                                  index, and runs `bench/run.py --gpu --out OUT/gpu ARGS`.
-#   bench/gpu.sh splice DIR        here: bench/run.py --splice on what came back (DIR: OUT, which
-#                                  holds OUT/gpu packed as gpu.tar.gz, or an unpacked OUT/gpu).
+#   bench/gpu.sh splice DIR [ARGS] here: bench/run.py --splice on what came back (DIR: OUT, which
+#                                  holds OUT/gpu packed as gpu.tar.gz, or an unpacked OUT/gpu);
+#                                  ARGS: --add-seeds to add real_scenes' seeds to the run before.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 bundle=$root/bench/.gpu
@@ -87,7 +88,7 @@ device)
   exit $rc
   ;;
 splice)
-  back=${2:?give the folder that came back}
+  back=${2:?give the folder that came back}; shift 2
   cd "$root"
   export PYTHONPATH=$root/proto:$root/clients:$root/daemon
   [ -z "${PYTHON:-}" ] && [ -x .venv/bin/python ] && python=.venv/bin/python
@@ -96,10 +97,10 @@ splice)
     trap 'rm -rf "$tmp"' EXIT
     tar -xzf "$back/gpu.tar.gz" -C "$tmp" && back=$tmp/gpu
   fi
-  "$python" bench/run.py --splice "$back"
+  "$python" bench/run.py --splice "$back" "$@"
   ;;
 *)
-  sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
   exit 2
   ;;
 esac

@@ -38,6 +38,7 @@ os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 
 import common  # noqa: E402
 import gpu_run  # noqa: E402
+import gpu_seeds  # noqa: E402
 from common import Result, Settings, Target  # noqa: E402
 
 CASES = ["demo", "overhead", "frozen", "warm_start", "quality", "stability", "memory", "control_plane",
@@ -204,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splice", type=Path, metavar="DIR",
                    help="copy a --gpu run's output DIR to bench/results/gpu/ and its section "
                    "into docs/benchmarks.md")
+    p.add_argument("--add-seeds", action="store_true",
+                   help="--splice: add the run's real_scenes seeds to those of the tables before "
+                   "(a seed run again replaces its rows; the other cases stay as they were)")
     p.add_argument("--with-choice", action="append", default=[], metavar="NAME=VALUE",
                    help="real_scenes, defaults_matrix: also a daemon job per seed with this "
                    "choice set (e.g. gauss_newton=on) or JobSpec field (schedule=constant), "
@@ -231,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         p.error(f"--with-choice {e}")
     if args.splice:
-        return gpu_run.splice(args.splice, DOCS)
+        return (gpu_seeds.add if args.add_seeds else gpu_run.splice)(args.splice, DOCS)
     if args.gpu:
         if args.out == HERE / "results":
             args.out = gpu_run.RESULTS
