@@ -91,6 +91,9 @@ class Settings:
     # defaults_matrix: every run's values per iteration kept (defaults_matrix-paths.jsonl), so
     # that an estimate made from a job's path (an average of its end) is judged on the same runs
     paths: bool = False
+    # real_scenes, defaults_matrix: the daemon's jobs given the thesis's bounds the plain loop
+    # runs with (Table 4's eta at most 1.55, its start), so that both sides know the same
+    thesis_bounds: bool = False
 
 
 # ---------------------------------------------------------------------------------------------

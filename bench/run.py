@@ -215,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paths", action="store_true",
                    help="defaults_matrix: keep every run's values per iteration "
                         "(defaults_matrix-paths.jsonl in --out)")
+    p.add_argument("--thesis-bounds", action="store_true",
+                   help="real_scenes, defaults_matrix: the daemon's jobs get the thesis's bounds "
+                   "the plain loop runs with (Table 4's eta at most 1.55, its start)")
     p.add_argument("--candidate-only", action="store_true",
                    help="defaults_matrix, stability: the --with-choice job in place of the "
                    "defaults, judged as they are (the plain loop at equal time runs for its "
@@ -252,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
                         dict(c.split("=", 1) for c in args.with_choice), args.first_seed,
                         tuple(args.spp), tuple(args.depth),
                         args.tutorials_repo.resolve() if args.tutorials_repo else None,
-                        args.candidate_only, args.paths)
+                        args.candidate_only, args.paths, args.thesis_bounds)
     if args.result_json:  # a case of --gpu, stopped at its cap with SIGTERM: say what finished
         signal.signal(signal.SIGTERM, _stopped)
     began = time.perf_counter()

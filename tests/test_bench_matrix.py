@@ -108,3 +108,20 @@ def test_a_cells_paths_are_written_a_line_per_run_and_read_back_as_they_were(tmp
         assert (row["table"], row["depth"], row["spp"], row["method"], row["seed"]) == (
             "table4", 8, 16, r.method, r.seed)
         assert row["values"] == r.paths and row["seconds"] == r.seconds
+
+
+def test_the_thesis_bounds_reach_the_daemons_jobs_only_when_asked():
+    """--thesis-bounds: the daemon's jobs get Table 4's eta <= 1.55, as its plain loop does;
+    without it only the plain preset (equal work) has it."""
+    table = TABLES["table4"]
+    eta = "object_bsdf.eta"
+
+    def spec(daemon_max: dict, **kw):
+        prep = rs.Prepared(table, rs.pb.Scene(name="scenes/s"), "blobs/r", Path("r.exr"),
+                           Path("s.xml"), {}, {}, daemon_max)
+        return {p.key: p for p in rs.daemon_spec(prep, 0, 10, **kw).parameters}
+
+    assert spec({})[eta].HasField("max") is False
+    assert spec({eta: 1.55})[eta].max == pytest.approx(1.55)
+    assert not spec({eta: 1.55})["medium1.sigma_t.value.value"].HasField("max")
+    assert spec({}, preset_plain=True)[eta].max == pytest.approx(1.55)
