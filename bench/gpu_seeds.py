@@ -99,12 +99,11 @@ def provenance(runs: list[KeptRun]) -> str:
                      for run, s in by_run.items())
 
 
-def blocks(subsection: str) -> tuple[list[str], dict[str, list[str]], list[str]]:
-    """real_scenes' subsection as its lines before the first table, each table's block by
-    name, and its "Data:" lines."""
+def blocks(subsection: str) -> tuple[list[str], dict[str, list[str]]]:
+    """real_scenes' subsection as its lines before the first table and each table's block by
+    name (its "Data:" line, rewritten from the files, dropped)."""
     head: list[str] = []
     tables: dict[str, list[str]] = {}
-    data: list[str] = []
     current = None
     for line in subsection.splitlines():
         m = re.match(r"\*\*(table\d+)\*\*", line)
@@ -112,20 +111,15 @@ def blocks(subsection: str) -> tuple[list[str], dict[str, list[str]], list[str]]
             current = m.group(1)
             tables[current] = []
         if line.startswith("Data: "):
-            data.append(line)
-            current = None
-        elif current:
-            tables[current].append(line)
-        elif not data:
-            head.append(line)
-    return head, tables, data
+            break
+        (tables[current] if current else head).append(line)
+    return head, tables
 
 
 def table_block(table: rs.Table, runs: list[KeptRun], new: list[str]) -> list[str]:
     """The table's block over ``runs``: the new run's first line (the scene, the integrator,
     the plain loop's settings) with where each seed comes from, and its choices' lines."""
-    first = re.sub(r"; \d+ s\)$", ")", new[0])
-    first = re.sub(r"^\*\*(table\d+)\*\*(, [^(]*)?", r"**\1**", first)
+    first = re.sub(r"; \d+ s\)$", ")", new[0])  # the run's seconds: not the seeds'
     lines = rs.table_lines(table, PLAN, runs)  # type: ignore[arg-type]
     choices = next((i for i, ln in enumerate(new) if ln.startswith("The job's integrator")),
                    len(new))
@@ -155,16 +149,21 @@ def add(source: Path, docs: Path, results: Path = gpu_run.RESULTS) -> int:
     new = read(source, run_of(summary))
     if not new:
         raise SystemExit(f"{source}: no real_scenes CSV under cases/{CASE}/")
+    ran = gpu_run._split(summary)[2].get(CASE)
+    if ran is None:
+        raise SystemExit(f"{source / 'summary.md'}: no real_scenes section to add seeds from")
+    new_top, new_blocks = blocks(ran)
+    if missing := sorted(new.keys() - new_blocks.keys()):
+        raise SystemExit(f"{source / 'summary.md'}: rows of {', '.join(missing)} in its CSVs "
+                         "but no block of them in its section (a run stopped before its report?)")
     page = docs.read_text()
     section = gpu_run.current(page)
+    if not section:
+        raise SystemExit(f"{docs}: no GPU section to add seeds to (splice a run without "
+                         "--add-seeds first)")
     head_lines, rows, subs = gpu_run._split(section)
-    _, new_blocks, _ = blocks(gpu_run._split(summary)[2][CASE])
     before = read(results, "an earlier run")
-    if CASE in subs:
-        top, old_blocks, _ = blocks(subs[CASE])
-    else:
-        top, old_blocks = gpu_run._split(summary)[2][CASE].splitlines(), {}
-        top = top[:next(i for i, ln in enumerate(top) if ln.startswith("**table"))]
+    top, old_blocks = blocks(subs[CASE]) if CASE in subs else (new_top, {})
     folder = results / "cases" / CASE
     folder.mkdir(parents=True, exist_ok=True)
     tables = {t.name: t for t in rs.TABLES}

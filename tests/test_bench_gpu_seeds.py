@@ -7,6 +7,8 @@ import csv
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
@@ -111,3 +113,15 @@ def test_seeds_of_a_later_loan_join_the_table_and_its_figures_are_taken_over_all
            "8 spp): seeds 0 and 1 on 2026-12-01 10:00 UTC, abc1234; seed 2 on an earlier run" \
            in section
     assert "[cases/real_scenes/real_scenes-table4.csv]" in section
+
+
+def test_a_folder_without_real_scenes_is_refused_by_name_and_nothing_is_written(tmp_path):
+    results, source, docs = tmp_path / "results", tmp_path / "source", tmp_path / "docs.md"
+    _write(source / "cases" / "real_scenes" / "real_scenes.csv", _rows(0, 0.004, 0.02, None))
+    (source / "summary.md").write_text(_section(
+        "`python bench/run.py --gpu` (finished): 2026-12-01 10:00 UTC, 6.0 min. commit abc1234.",
+        [], "").replace("`bench/real_scenes.py`", "`bench/other.py`"))
+    docs.write_text("page\n")
+    with pytest.raises(SystemExit, match=r"source/summary\.md: no real_scenes section"):
+        gpu_seeds.add(source, docs, results)
+    assert docs.read_text() == "page\n" and not results.exists()
