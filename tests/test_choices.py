@@ -38,7 +38,7 @@ def _settings(**choices: str) -> api.JobSettings:
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
-        "roughness_constant_rate", "width_differences", "gauss_newton"]  # the candidates
+        "roughness_constant_rate", "gauss_newton"]  # the candidates, off unless named
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     assert _settings(all="on").choice_on("roughness_constant_rate")
     off = _settings(eta_differences="off")
@@ -247,23 +247,16 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     choices = {c.name: c for c in job.choices}
     assert {"log_space", "roughness_floor", "eta_differences"} <= set(choices)
     assert "eta_hold" not in choices
-    candidates = ("gauss_newton", "roughness_constant_rate", "width_differences")
+    candidates = ("gauss_newton", "roughness_constant_rate")  # off unless named
     assert all(c.on == (name not in candidates) and c.switchable and c.why
                for name, c in choices.items())
     assert "Adam" in choices["gauss_newton"].why  # off unless named: what it would do instead
     assert "decays with the schedule" in choices["roughness_constant_rate"].why
-    assert "back-propagation alone" in choices["width_differences"].why
     assert "relative" in choices["log_space"].why
     # Measured: its hooks' time per iteration (the differences render, the floor only maps).
     assert choices["eta_differences"].seconds_per_iteration >= 0
     assert choices["roughness_floor"].seconds_per_iteration < 0.01
     assert any("its listed rate 0.2 is a relative step" in n for n in job.notes)
-
-    # Named, the roughness (0.5, alpha 0.25, under 0.2 after a step) takes its
-    # differences' renders: a cost the job reports.
-    named = {c.name: c for c in _job(stubs, case, 8, width_differences="on").choices}
-    assert named["width_differences"].on
-    assert named["width_differences"].seconds_per_iteration > 0
 
     off = _job(stubs, case, 8, eta_differences="off", log_space="off")
     choices = {c.name: c for c in off.choices}

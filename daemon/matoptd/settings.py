@@ -67,9 +67,6 @@ CHOICES = {
                        "full sets the spp of the two sides: a quarter of the job's, the "
                        "default, or all of it; optionally :ALPHA, the width below which "
                        "they apply, e.g. quarter:0.05)",
-    "width_differences": "the microfacet width beside a dielectric's eta differentiated by "
-                         "central differences of the images in its step variable while it "
-                         "shows alpha below 0.2; off unless turned on",
     "eta_hold": "a dielectric's eta held at its start while the other parameters still move "
                 "steadily",
     "gauss_newton": "a handful of scalars and colours stepped by damped Gauss-Newton in a "
@@ -80,7 +77,7 @@ CHOICES = {
               "passes: no Python tracing per iteration; same results",
 }
 # Choices a job turns on by name (or with ALL_CHOICES): candidates until the matrix decides.
-OFF_UNLESS_NAMED = ("gauss_newton", "roughness_constant_rate", "width_differences")
+OFF_UNLESS_NAMED = ("gauss_newton", "roughness_constant_rate")
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")

@@ -6,8 +6,8 @@ The order matters where hooks meet, and the choices that meet declare it (``afte
 start is changed (black_start) before it is encoded; a texture's coarse level is blown up
 (multires, ``expand``) before its value is decoded, exp(u) (log_space) before the principled
 roughness's floor (roughness_floor); gains multiply the renders (exposure_gains) before eta's
-differences and the width's read them; eta's hold marks it held before its differences would
-be rendered for nothing. Both leave the keys that gauss_newton steps, while it is on. log_space leaves a
+differences read them; eta's hold marks it held before its differences would be rendered for
+nothing. Both leave the keys that gauss_newton steps, while it is on. log_space leaves a
 homogeneous sigma_t to linear_extinction while that is on, and slow_interface_width takes a
 share of the relative rate log_space gives a width. frozen comes last: it begins once the
 others have said what they do to the renders.
@@ -35,12 +35,11 @@ from .roughness_constant_rate import RoughnessConstantRate
 from .roughness_floor import RoughnessFloor
 from .slow_interface_width import SlowInterfaceWidth
 from .smoothness import Smoothness
-from .width_differences import WidthDifferences
 
 REGISTRY: tuple[type[Choice], ...] = (
     FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, LinearExtinction,
     SlowInterfaceWidth, MediumConstantRate, RoughnessConstantRate, RoughnessFloor,
-    ExposureGains, Smoothness, EtaHold, EtaDifferences, WidthDifferences, GaussNewton, Frozen)
+    ExposureGains, Smoothness, EtaHold, EtaDifferences, GaussNewton, Frozen)
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"

@@ -53,35 +53,6 @@ EVERY = 4     # once eta has settled, its difference every EVERY-th iteration
 KEPT = 16     # once settled, D is the mean of the last KEPT differences
 
 
-def side_difference(ctx, key: str, lo: float, hi: float, scale: float, spp: int
-                    ) -> dict[int, list]:
-    """Per sensor, (I(hi) - I(lo)) with ``key`` set to each side, times ``scale``: both
-    sides from samples of their own (DRAW), shared between them, so most of their noise
-    cancels."""
-    sides = []
-    for side in (lo, hi):
-        with ctx.holding({key: np.array([side])}), dr.suspend_grad():
-            sides.append({sensor: ctx.sensor_images(n, sensor, DRAW, spp)
-                          for n, sensor in ctx.sensors})
-    with dr.suspend_grad():
-        return {sensor: [(b - a) * scale for a, b in zip(sides[0][sensor], sides[1][sensor])]
-                for _, sensor in ctx.sensors}
-
-
-def loss_slope(ctx, hd: dict[int, list], h: float):
-    """dL/dx ~ (L(I + h D) - L(I - h D)) / 2h, the mean over the job's sensors, I this
-    iteration's own renders and ``hd`` each sensor's h D. Left to Dr.Jit: the step
-    evaluates it, with no read back of its own per iteration."""
-    slope = mi.Float(0.0)
-    with dr.suspend_grad():
-        for _, sensor in ctx.sensors:
-            d, images = hd[sensor], ctx.images[sensor]
-            up = ctx.image_loss([x + y for x, y in zip(images, d)], sensor)
-            down = ctx.image_loss([x - y for x, y in zip(images, d)], sensor)
-            slope += dr.ravel(up - down)
-    return slope / (2 * h * len(ctx.sensors))
-
-
 class EtaDifferences(Choice):
     name = "eta_differences"
     yields_to = ("gauss_newton",)  # which steps eta by Gauss-Newton, while on
@@ -166,18 +137,32 @@ class EtaDifferences(Choice):
             else:
                 self.sparse += 1
                 self._say()
-            out[key] = loss_slope(ctx, self.kept[key], STEP)
+            # left to Dr.Jit: the step evaluates it, with no read back of its own per iteration
+            slope = mi.Float(0.0)
+            with dr.suspend_grad():
+                for _, sensor in ctx.sensors:
+                    d = self.kept[key][sensor]
+                    images = ctx.images[sensor]
+                    up = ctx.image_loss([x + y for x, y in zip(images, d)], sensor)
+                    down = ctx.image_loss([x - y for x, y in zip(images, d)], sensor)
+                    slope += dr.ravel(up - down)
+            out[key] = slope / (2 * STEP * len(ctx.sensors))
         return out
 
     def _difference(self, ctx, key: str, lo: float, hi: float, spp: int, settled: bool
                     ) -> None:
         """A new h D from renders at eta's two sides: once eta has settled, into the mean of
         the last KEPT; while it moves, D moves with it and the newest stands alone."""
-        new = side_difference(ctx, key, lo, hi, STEP / (hi - lo), spp)
+        sides = []
+        for side in (lo, hi):
+            with ctx.holding({key: np.array([side])}), dr.suspend_grad():
+                sides.append({sensor: ctx.sensor_images(n, sensor, DRAW, spp)
+                              for n, sensor in ctx.sensors})
         kept, taken = self.kept[key], self.taken[key]
         with dr.suspend_grad():
             for _, sensor in ctx.sensors:
-                d = new[sensor]
+                d = [(b - a) * (STEP / (hi - lo))
+                     for a, b in zip(sides[0][sensor], sides[1][sensor])]
                 taken[sensor] = taken.get(sensor, 0) + 1 if settled else 1
                 w = 1.0 / min(taken[sensor], KEPT)
                 old = kept.get(sensor) if taken[sensor] > 1 else None
