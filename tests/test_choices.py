@@ -38,7 +38,7 @@ def _settings(**choices: str) -> api.JobSettings:
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
-        "roughness_constant_rate", "gauss_newton"]  # the candidates, off unless named
+        "slow_interface_width", "roughness_constant_rate", "gauss_newton"]  # the candidates
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     assert _settings(all="on").choice_on("roughness_constant_rate")
     off = _settings(eta_differences="off")
@@ -186,14 +186,20 @@ def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_do
 
 
 def test_a_dielectrics_width_around_a_medium_steps_at_half_its_listed_rate():
-    settings, records = _interface()  # on by default
+    settings, records = _interface(slow_interface_width="on")  # off unless named
     choice = SlowInterfaceWidth(settings)
     _set_up([choice], settings, records)
-    assert choice.applies and choice.keys == [ALPHA]
+    assert choice.on and choice.applies and choice.keys == [ALPHA]
     assert choice.rate(records[ALPHA], 0.2) == pytest.approx(0.1)
     assert "0.1 in place of 0.2" in choice.notes()[0]
+    # By default off, saying that the width steps at its listed rate.
+    settings, records = _interface()
+    choice = SlowInterfaceWidth(settings)
+    _set_up([choice], settings, records)
+    assert not choice.on and choice.applies and "at its listed rate" in choice.why
     # A rate the job gave is the job's; without a medium, eta's differences decide eta.
-    for settings, records in (_interface(0.3), _interface(medium=False)):
+    for settings, records in (_interface(0.3, slow_interface_width="on"),
+                              _interface(medium=False, slow_interface_width="on")):
         choice = SlowInterfaceWidth(settings)
         _set_up([choice], settings, records)
         assert not choice.applies and choice.keys == []
@@ -307,9 +313,11 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert choices["linear_extinction"].on and "sigma_t" in choices["linear_extinction"].why
     assert "sigma_t" not in choices["log_space"].why
     assert any("sigma_t" in n and "stepped linearly" in n for n in held.notes)
-    # The interface's width at half its rate while eta waits; the medium's pair undecayed.
-    assert choices["slow_interface_width"].on and "alpha" in choices["slow_interface_width"].why
-    assert any("alpha" in n and "0.1 in place of 0.2" in n for n in held.notes)
+    # The interface's width at its listed rate (its half rate off unless named); the medium's
+    # pair undecayed.
+    assert not choices["slow_interface_width"].on
+    assert "alpha" in choices["slow_interface_width"].why
+    assert not any("0.1 in place of 0.2" in n for n in held.notes)
     assert choices["medium_constant_rate"].on
     assert all(k in choices["medium_constant_rate"].why for k in ("albedo", "sigma_t"))
     # No release before WINDOW steps of the others are known.

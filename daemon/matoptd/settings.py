@@ -49,7 +49,7 @@ CHOICES = {
                          "space), its rate a share of the larger of its value and its start",
     "slow_interface_width": "the microfacet width of a dielectric around a homogeneous medium, "
                             "given no rate, stepped at half its listed rate, so that eta moves "
-                            "while the interface is rough",
+                            "while the interface is rough; off unless turned on",
     "medium_constant_rate": "a homogeneous medium's albedo and extinction, both selected and "
                             "given no rate, stepped at their full rate to the end (the "
                             "schedule's decay not applied to them)",
@@ -77,7 +77,7 @@ CHOICES = {
               "passes: no Python tracing per iteration; same results",
 }
 # Choices a job turns on by name (or with ALL_CHOICES): candidates until the matrix decides.
-OFF_UNLESS_NAMED = ("gauss_newton", "roughness_constant_rate")
+OFF_UNLESS_NAMED = ("gauss_newton", "roughness_constant_rate", "slow_interface_width")
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name
 UPSAMPLING = ("nearest", "linear")

@@ -11,9 +11,13 @@ a median 1.0% off against the defaults' 2.8% (docs/benchmarks-history.md, 2026-1
 
 Only for a width the job gave no rate for, beside a dielectric's eta with a medium selected:
 without a medium, eta_differences decides eta near the specular limit (Table 2), and a width
-crossing decades (0.5 to 0.001) needs the full rate to get there in a short job. With
-medium_constant_rate, Table 4's depth-8 cells went from losing to the plain loop to tying or
-beating it (bench/defaults_matrix.py; docs/benchmarks.md).
+crossing decades (0.5 to 0.001) needs the full rate to get there in a short job.
+
+Off unless named (``--choice slow_interface_width=on``). At the scene file's own depth (64, cut
+to 32), spp 16, the half rate leaves alpha stopped at 0.05-0.064 and a denser medium making up
+for the wider lobe: over 8 seeds a median worst gated error of 7.1% with it against 3.4%
+without (better on 7 of 8). At max_depth 8, spp 32 without it: 1.2% against 2.0% over 5 seeds,
+two of them at 7%: a tie within the seeds' spread (docs/benchmarks-history.md, 2026-11-30).
 """
 
 from __future__ import annotations
@@ -42,7 +46,8 @@ class SlowInterfaceWidth(Choice):
         keys = ", ".join(sorted(records))
         self.why = (f"{keys} stepped at {SHARE:g} of its listed rate: eta beside it has a "
                     "gradient to go by only while the interface is rough" if self.on else
-                    f"{keys} stepped at its listed rate")
+                    f"{keys} stepped at its listed rate (on: at {SHARE:g} of it, so that eta "
+                    "beside it moves while the interface is rough)")
 
     def rate(self, record, rate: float) -> float:
         return rate * SHARE
