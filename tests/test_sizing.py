@@ -85,7 +85,8 @@ def test_two_cpu_workers_on_one_device_share_two_users_jobs(tmp_path):
         assert info.returncode == 0, info.stderr
         assert "2 sharing the CPU's cores (--workers-per-device 2)" in info.stdout
         assert "workers/0" in info.stdout and "workers/1" in info.stdout
-        a, b = cornell_job(alice, 400), cornell_job(bob, 400)
+        # Long enough that neither ends before it is cancelled (frozen, 400 took 6 s).
+        a, b = cornell_job(alice, 5000), cornell_job(bob, 5000)
         deadline, busy = time.time() + 120, set()
         while time.time() < deadline and len(busy) < 2:  # both workers hold a job at once
             listing = alice.server.GetServerInfo(pb.GetServerInfoRequest()).workers
@@ -97,6 +98,7 @@ def test_two_cpu_workers_on_one_device_share_two_users_jobs(tmp_path):
             wait_iteration(stubs, job.name, 2, timeout=300)
         for stubs, job in ((alice, a), (bob, b)):
             stubs.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+        for stubs, job in ((alice, a), (bob, b)):
             wait_state(stubs, job.name, (pb.JOB_STATE_CANCELLED,), timeout=120)
     finally:
         alice.close()
