@@ -17,7 +17,8 @@ Off unless named (``--choice slow_interface_width=on``). At the scene file's own
 to 32), spp 16, the half rate leaves alpha stopped at 0.05-0.064 and a denser medium making up
 for the wider lobe: over 8 seeds a median worst gated error of 7.1% with it against 3.4%
 without (better on 7 of 8). At max_depth 8, spp 32 without it: 1.2% against 2.0% over 5 seeds,
-two of them at 7%: a tie within the seeds' spread (docs/benchmarks-history.md, 2026-11-30).
+two of them at 7%: a tie within the seeds' spread. At the own depth, spp 32 it was ahead on 3
+of 4 seeds, in a cell lost either way (docs/benchmarks-history.md, 2026-11-30).
 """
 
 from __future__ import annotations
