@@ -215,7 +215,7 @@ class Prepared:
     plain_xml: Path
     overrides: dict[str, str]
     ranges: dict[str, tuple[float, float]]
-    daemon_max: dict[str, float] = field(default_factory=dict)  # maxima the daemon's jobs get
+    thesis_bounds: bool = False  # the daemon's jobs also get the table's plain_max
 
 
 def prepare(client: mc.Client, table: Table, p: Plan, settings: Settings,
@@ -240,7 +240,7 @@ def prepare(client: mc.Client, table: Table, p: Plan, settings: Settings,
     ranges = {k: (listed[k].min, table.plain_max.get(k, listed[k].max)) for k in table.start}
     plain_xml = loadable(xml, repo, settings.work / "plain" / f"{table.name}.xml")
     return Prepared(table, scene, reference[0], reference[1], plain_xml, sets, ranges,
-                    dict(table.plain_max) if settings.thesis_bounds else {})
+                    settings.thesis_bounds)
 
 
 def run_plain(prep: Prepared, p: Plan, seed: int, variant: str, iterations: int,
@@ -270,7 +270,7 @@ def daemon_spec(prep: Prepared, seed: int, iterations: int, choices: dict[str, s
         param = pb.ParameterSpec(key=key, initial_value=start)
         if preset_plain:  # the plain loop's rates and bounds: equal work, equal steps
             param.learning_rate = t.plain_rates.get(key, 0.03)
-        if key in (t.plain_max if preset_plain else prep.daemon_max):
+        if key in t.plain_max and (preset_plain or prep.thesis_bounds):
             param.max = t.plain_max[key]
         params.append(param)
     spec = pb.JobSpec(scene=prep.scene.name, references=[pb.Reference(blob=prep.ref_blob)],

@@ -116,12 +116,12 @@ def test_the_thesis_bounds_reach_the_daemons_jobs_only_when_asked():
     table = TABLES["table4"]
     eta = "object_bsdf.eta"
 
-    def spec(daemon_max: dict, **kw):
+    def spec(thesis_bounds: bool, **kw):
         prep = rs.Prepared(table, rs.pb.Scene(name="scenes/s"), "blobs/r", Path("r.exr"),
-                           Path("s.xml"), {}, {}, daemon_max)
+                           Path("s.xml"), {}, {}, thesis_bounds)
         return {p.key: p for p in rs.daemon_spec(prep, 0, 10, **kw).parameters}
 
-    assert spec({})[eta].HasField("max") is False
-    assert spec({eta: 1.55})[eta].max == pytest.approx(1.55)
-    assert not spec({eta: 1.55})["medium1.sigma_t.value.value"].HasField("max")
-    assert spec({}, preset_plain=True)[eta].max == pytest.approx(1.55)
+    assert spec(False)[eta].HasField("max") is False
+    assert spec(True)[eta].max == pytest.approx(1.55)
+    assert not spec(True)["medium1.sigma_t.value.value"].HasField("max")
+    assert spec(False, preset_plain=True)[eta].max == pytest.approx(1.55)
