@@ -66,6 +66,8 @@ class Daemon:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"matoptd exited: {self.log.read_text()[-2000:]}")
             if time.time() > deadline:
+                self.proc.kill()  # else it outlives the test that never got to stop it
+                self.proc.wait()
                 raise RuntimeError("matoptd did not start in 120 s")
             time.sleep(0.1)
         self.port = int(port_file.read_text())

@@ -14,7 +14,7 @@ import grpc
 import pytest
 
 from matopt_api.v1 import matopt_pb2 as pb
-from matoptd.scheduling.monitor import CANCEL_GRACE_S
+from matoptd.scheduling.monitor import CANCEL_GRACE_S, SHUTDOWN_GRACE_S
 
 from conftest import Daemon, Stubs, TOKENS, token_file, wait_state
 from scenes import upload
@@ -215,14 +215,15 @@ def test_cancel_inside_a_long_iteration_stops_it_within_seconds(two_users):  # n
                         parameters=[pb.ParameterSpec(key=WALLS[0])])))))
     asking.start()
 
-    began = time.monotonic()
-    alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+    asked = alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
+    assert asked.state == pb.JOB_STATE_RUNNING, asked  # until it stops
     cancelled = wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_FAILED, pb.JOB_STATE_SUCCEEDED), timeout=60)
-    took = time.monotonic() - began
     assert cancelled.state == pb.JOB_STATE_CANCELLED, cancelled
-    # The grace, then a kill and a state written: seconds, against an iteration of minutes
-    # (a loaded 2-core machine has taken 5.2 s).
-    assert took < CANCEL_GRACE_S + 10.0, f"the cancel took {took:.1f} s"
+    # The grace, then a kill and a state written: seconds, against an iteration of minutes.
+    # Timed by the job's record, from the cancel's arrival: the API runs at nice 19 beside
+    # the render, so its calls wait for CPU (docs/engine.md).
+    took = (cancelled.update_time.ToNanoseconds() - asked.update_time.ToNanoseconds()) / 1e9
+    assert took < CANCEL_GRACE_S + 6.0, f"the cancel took {took:.1f} s"
     assert any("cancelled during a long iteration" in n for n in cancelled.notes)
 
     asking.join(timeout=120)
@@ -252,7 +253,9 @@ def test_sigterm_inside_a_long_iteration_exits_within_seconds(two_users):  # noq
         pytest.fail("the daemon did not exit within 60 s of SIGTERM")
     took = time.monotonic() - began
     assert daemon.proc.returncode == 0
-    assert took < 15.0, f"the daemon took {took:.1f} s to exit"
+    # The grace an iteration in flight gets, then seconds for the rest, against an
+    # iteration of minutes.
+    assert took < SHUTDOWN_GRACE_S + 10.0, f"the daemon took {took:.1f} s to exit"
     assert not alive(busy.pid), "the worker outlived the daemon"
     watch.cancel()
 

@@ -10,7 +10,7 @@ from matoptd.records import Phase
 from matoptd.scheduling.control import JobControl
 from matoptd.scheduling.events import Events
 from matoptd.scheduling.lanes import Lane, Lanes
-from matoptd.scheduling.monitor import CANCEL_GRACE_S, Monitor
+from matoptd.scheduling.monitor import CANCEL_GRACE_S, SHUTDOWN_GRACE_S, Monitor
 from matoptd.scheduling.recovery import Recovery
 from matoptd.scheduling.scheduler import Scheduler
 from matoptd.scheduling.state import State
@@ -206,6 +206,36 @@ def test_a_cancel_inside_the_first_iteration_leaves_no_results():
     assert done.phase is Phase.CANCELLED and done.iteration == 0
     assert not [k for k in d.store.results if k[0] == "jobs/a"]
     assert any("so the job has no results" in n for n in done.notes)
+
+
+def test_a_shutdown_cuts_off_an_iteration_only_past_its_grace():
+    d = Daemon()
+    d.control.create(job("a", iterations=1000), None)
+    monitor = Monitor(d.state, d.recovery, lambda: True)
+    for _ in range(5):
+        d.lane.turn()
+    kills: list[tuple[float, str]] = []
+    kill = d.worker.kill
+    d.worker.kill = lambda reason, cause: (kills.append((d.clock.t, reason)), kill(reason, cause))
+    with d.state.lock:
+        d.state.stopping, d.state.stop_asked = True, d.clock.monotonic()
+    asked = d.clock.t
+
+    def long_step(method, args):
+        if method == "step":
+            while not kills and d.clock.t < asked + 60:  # the monitor looks every second
+                d.clock.t += 1.0
+                monitor.check()
+    d.worker.before = long_step
+    d.lane.turn()
+    assert len(kills) == 1
+    when, reason = kills[0]
+    assert SHUTDOWN_GRACE_S < when - asked <= SHUTDOWN_GRACE_S + 1
+    assert reason == "was stopped: the daemon shut down during a long iteration"
+    d.recovery.interrupt_all("the daemon was shut down")
+    record = d.store.get_job("jobs/a")
+    assert record.phase is Phase.INTERRUPTED
+    assert record.stop_reason.startswith("the daemon was shut down")
 
 
 def test_a_cancel_at_an_iteration_boundary_ends_the_job_with_its_results():

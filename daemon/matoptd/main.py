@@ -137,8 +137,12 @@ async def serve(args: argparse.Namespace) -> None:
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def on_signal() -> None:
+        lanes.begin_stop()
+        stop.set()
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, on_signal)
     health_task = asyncio.create_task(app.report_health(health_servicer, names, lanes, stop))
     await stop.wait()
     await health_task

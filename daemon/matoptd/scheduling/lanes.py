@@ -36,7 +36,6 @@ log = logging.getLogger("matoptd.lanes")
 
 CHECKPOINT_ITERATIONS = 10  # a lost worker costs a job at most this many iterations...
 CHECKPOINT_SECONDS = 2.0    # ...or this much time, whichever is more
-SHUTDOWN_GRACE_S = 10.0     # on shutdown, an iteration running longer is cut off
 
 
 def stop_note(reason: str, job: JobRecord) -> str:
@@ -484,8 +483,11 @@ class Lanes:
         return started
 
     def thread_ids(self) -> set[int]:
-        """The lanes' threads (the OS's ids): they start the worker processes."""
-        return {t.native_id for t in self._threads if t.native_id is not None}
+        """The lanes' threads (the OS's ids), which start the worker processes, and the
+        monitor's, whose kills (a cancel past its grace, a worker over its memory) must not
+        wait behind the very render they stop."""
+        threads = [*self._threads, self.monitor.thread]
+        return {t.native_id for t in threads if t.native_id is not None}
 
     @property
     def step_seconds(self) -> float:
@@ -502,20 +504,20 @@ class Lanes:
         return (self.ready and not self.state.scheduler.held
                 and self.state.store.disk.full_since is None)
 
+    def begin_stop(self) -> None:
+        """No new work; the iterations in flight have their grace from now. Called from the
+        signal's own handler, before the rest of a shutdown's work on a niced server."""
+        with self.state.lock:
+            if not self.state.stopping:
+                self.state.stopping, self.state.stop_asked = True, self.state.clock.monotonic()
+            self.state.stopped.set()
+            self.state.wake.notify_all()
+
     def stop(self) -> None:
         """Finishes the iterations in flight (cutting off any that runs past a grace period),
         checkpoints loaded jobs, marks running ones INTERRUPTED and stops the workers."""
-        with self.state.lock:
-            self.state.stopping = True
-            self.state.stopped.set()
-            self.state.wake.notify_all()
-        deadline = self.state.clock.monotonic() + SHUTDOWN_GRACE_S
-        for thread in self._threads:
-            thread.join(max(0.0, deadline - self.state.clock.monotonic()))
-        for w in self.state.workers.values():
-            if w.state == "busy":
-                w.kill("was stopped: the daemon shut down during a long iteration", "stopped")
-        for thread in self._threads:
+        self.begin_stop()
+        for thread in self._threads:  # the monitor cuts off an iteration past its grace
             thread.join()
         self.recovery.interrupt_all("the daemon was shut down")
 

@@ -1,6 +1,7 @@
 """A thread that watches what no lane can see from inside a call: workers over their memory
-limit, cancels that an iteration in flight keeps waiting, and the disk's space coming back
-after it filled up."""
+limit, a cancel or a shutdown that an iteration in flight keeps waiting, and the disk's space
+coming back after it filled up. It keeps normal priority where the server is niced below the
+workers (main.py): its kills must not wait behind the render they stop."""
 
 from __future__ import annotations
 
@@ -17,20 +18,24 @@ log = logging.getLogger("matoptd.monitor")
 
 PERIOD_S = 0.1
 CANCEL_GRACE_S = 3.0  # a cancel inside a long iteration stops the worker after this
+SHUTDOWN_GRACE_S = 10.0  # on shutdown, an iteration running longer is cut off
 
 
 class Monitor:
     def __init__(self, state: State, recovery: Recovery, lanes_alive: Callable[[], bool]
                  ) -> None:
         self.state, self.recovery, self._lanes_alive = state, recovery, lanes_alive
-        self._thread = threading.Thread(target=self._run, name="matoptd-monitor", daemon=True)
+        self.thread = threading.Thread(target=self._run, name="matoptd-monitor", daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        self.thread.start()
 
     def _run(self) -> None:
         while not (self.state.stopping and not self._lanes_alive()):
-            self.check()
+            try:
+                self.check()
+            except Exception:  # noqa: BLE001 - a shutdown waits on it to cut iterations off
+                log.exception("the monitor's check failed")
             time.sleep(PERIOD_S)
 
     def check(self) -> None:
@@ -57,3 +62,9 @@ class Monitor:
             if name in workers:
                 workers[name].kill("was stopped: its job was cancelled during a long "
                                    "iteration", "stopped")
+        asked = state.stop_asked
+        if asked is not None and state.clock.monotonic() - asked > SHUTDOWN_GRACE_S:
+            for w in workers.values():
+                if w.state == "busy":
+                    w.kill("was stopped: the daemon shut down during a long iteration",
+                           "stopped")

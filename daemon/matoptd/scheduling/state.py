@@ -89,6 +89,7 @@ class State:
         self.wake = threading.Condition(self.lock)
         self.stopping = False
         self.stopped = threading.Event()  # set with ``stopping``: cuts waits short
+        self.stop_asked: float | None = None  # clock.monotonic() when ``stopping`` was set
         # Seconds a lane leaves the CPU to the server when a client waits on a job (its load,
         # its first iteration): beside CPU workers the server runs niced below them and would
         # answer only when the worker next pauses (main.py sets it; 0: it need not).

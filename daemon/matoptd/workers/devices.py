@@ -96,7 +96,7 @@ def lower_priority(by: int, keep: set[int]) -> int:
     the render threads on cores they share, so status traffic takes its CPU from the server
     rather than from the jobs. ``keep``: the lanes' threads, which start the worker processes
     (a process starts with the nice value of the thread that forked it, and an unprivileged
-    one cannot lower it back). Threads started later by a lowered one inherit its value."""
+    one cannot lower it back), and the monitor's, which stops them. Threads started later by a lowered one inherit its value."""
     lowered = 0
     for task in os.listdir("/proc/self/task"):
         tid = int(task)
