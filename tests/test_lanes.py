@@ -218,7 +218,7 @@ def test_a_shutdown_cuts_off_an_iteration_only_past_its_grace():
     kill = d.worker.kill
     d.worker.kill = lambda reason, cause: (kills.append((d.clock.t, reason)), kill(reason, cause))
     with d.state.lock:
-        d.state.stopping, d.state.stop_asked = True, d.clock.monotonic()
+        d.state.stop_asked = d.clock.monotonic()
     asked = d.clock.t
 
     def long_step(method, args):

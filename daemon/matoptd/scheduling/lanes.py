@@ -484,8 +484,8 @@ class Lanes:
 
     def thread_ids(self) -> set[int]:
         """The lanes' threads (the OS's ids), which start the worker processes, and the
-        monitor's, whose kills (a cancel past its grace, a worker over its memory) must not
-        wait behind the very render they stop."""
+        monitor's, whose kills (a cancel or a shutdown past its grace, a worker over its memory)
+        must not wait behind the very render they stop."""
         threads = [*self._threads, self.monitor.thread]
         return {t.native_id for t in threads if t.native_id is not None}
 
@@ -508,8 +508,8 @@ class Lanes:
         """No new work; the iterations in flight have their grace from now. Called from the
         signal's own handler, before the rest of a shutdown's work on a niced server."""
         with self.state.lock:
-            if not self.state.stopping:
-                self.state.stopping, self.state.stop_asked = True, self.state.clock.monotonic()
+            if self.state.stop_asked is None:
+                self.state.stop_asked = self.state.clock.monotonic()
             self.state.stopped.set()
             self.state.wake.notify_all()
 

@@ -87,13 +87,16 @@ class State:
         self.workers: dict[str, Handle] = {}  # replaced whole, never changed in place
         self.lock = threading.RLock()
         self.wake = threading.Condition(self.lock)
-        self.stopping = False
-        self.stopped = threading.Event()  # set with ``stopping``: cuts waits short
-        self.stop_asked: float | None = None  # clock.monotonic() when ``stopping`` was set
+        self.stop_asked: float | None = None  # clock.monotonic() when the daemon began to stop
+        self.stopped = threading.Event()  # set with ``stop_asked``: cuts waits short
         # Seconds a lane leaves the CPU to the server when a client waits on a job (its load,
         # its first iteration): beside CPU workers the server runs niced below them and would
         # answer only when the worker next pauses (main.py sets it; 0: it need not).
         self.server_turn = 0.0
+
+    @property
+    def stopping(self) -> bool:
+        return self.stop_asked is not None
 
     def record(self, name: str, owner: str | None = None) -> JobRecord:
         """The job's record: the scheduler's while it holds the job (the one that changes),
