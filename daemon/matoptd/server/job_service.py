@@ -5,6 +5,7 @@ worker."""
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import logging
 import uuid
@@ -47,20 +48,11 @@ class JobService(rpc.JobServiceServicer):
             existing = self.store.job_by_request(user, request.request_id)
             if existing:
                 return convert.job_to_pb(existing)
-        self._admit_another(user)
-        scene = self.store.get_scene(user, resource("scenes", request.spec.scene))
-        self.store.blobs.check_room(user)
-        # Before any other check: another user's blob must fail exactly as a missing one.
-        for sha in sorted(job_spec.given_blobs(request.spec)):
-            self.store.blobs.file(sha, user)
-        listing = self.store.scene_parameters(user, scene.name)
-        params = {p.key: p for p in listing}
-        start = self._start_from(user, request) if request.initial_from_job else None
-        built = job_spec.build(request.spec, scene, params, self.store.blobs.reader(user),
-                               start, self.backend.limits.max_samples)
+        # Off the event loop: the checks decode .npy values and read image headers, which
+        # beside CPU workers, at the server's low priority, takes seconds; a cancel or a
+        # status call from another user is answered meanwhile.
+        scene, params, built, estimate = await asyncio.to_thread(self._checked, user, request)
         settings = built.settings
-        estimate = admission.admit_job(settings, films(scene), self.store.blobs.file,
-                                       self.backend.limits)
         with self.backend.tasks.hold(user):
             await self.backend.lanes.run_task(
                 lambda engine: engine.check_references(settings.references))
@@ -76,6 +68,23 @@ class JobService(rpc.JobServiceServicer):
         log.info("%s of %s admitted: %s", job.name, user, estimate.summary,
                  extra=about(job.name, user))
         return convert.job_to_pb(created)
+
+    def _checked(self, user: str, request: pb.CreateJobRequest):
+        """The spec checked and defaulted, and the job's cost admitted: what needs no worker."""
+        self._admit_another(user)
+        scene = self.store.get_scene(user, resource("scenes", request.spec.scene))
+        self.store.blobs.check_room(user)
+        # Before any other check: another user's blob must fail exactly as a missing one.
+        for sha in sorted(job_spec.given_blobs(request.spec)):
+            self.store.blobs.file(sha, user)
+        listing = self.store.scene_parameters(user, scene.name)
+        params = {p.key: p for p in listing}
+        start = self._start_from(user, request) if request.initial_from_job else None
+        built = job_spec.build(request.spec, scene, params, self.store.blobs.reader(user),
+                               start, self.backend.limits.max_samples)
+        estimate = admission.admit_job(built.settings, films(scene), self.store.blobs.file,
+                                       self.backend.limits)
+        return scene, params, built, estimate
 
     def _admit_another(self, user: str) -> None:
         """Refuses a user's job beyond --max-jobs-per-user active ones."""

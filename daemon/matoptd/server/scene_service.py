@@ -100,6 +100,17 @@ class SceneService(rpc.SceneServiceServicer):
 
     async def RenderScene(self, request, context):
         user = caller()
+        # Off the event loop, as CreateJob's checks: given values may be large .npy blobs.
+        inputs, render = await asyncio.to_thread(self._render_checked, user, request)
+        with self.backend.tasks.hold(user):
+            images = await self.backend.lanes.run_task(
+                lambda engine: engine.render(inputs, render))
+        put = self.blobs.writer(user)
+        return pb.RenderSceneResponse(images=[convert.image_to_pb(keep_image(i, put))
+                                              for i in images])
+
+    def _render_checked(self, user: str, request: pb.RenderSceneRequest):
+        """The render asked for, checked and admitted: what needs no worker."""
         scene = self.store.get_scene(user, resource("scenes", request.name))
         self.blobs.check_room(user)
         if request.HasField("spp") and request.spp < 1:
@@ -110,12 +121,7 @@ class SceneService(rpc.SceneServiceServicer):
         for key, values in render.values.items():
             _check_value(key, values, params, scene)
         admission.admit_render(render, films(scene), self.backend.limits)
-        with self.backend.tasks.hold(user):
-            images = await self.backend.lanes.run_task(
-                lambda engine: engine.render(inputs, render))
-        put = self.blobs.writer(user)
-        return pb.RenderSceneResponse(images=[convert.image_to_pb(keep_image(i, put))
-                                              for i in images])
+        return inputs, render
 
 
 def _check_value(key: str, values, params: dict[str, ParameterInfo], scene: SceneRecord
