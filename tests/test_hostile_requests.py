@@ -219,7 +219,7 @@ def test_cancel_inside_a_long_iteration_stops_it_within_seconds(two_users):  # n
     asked = alice.jobs.CancelJob(pb.CancelJobRequest(name=job.name))
     answered = time.monotonic() - sent
     assert asked.state == pb.JOB_STATE_RUNNING, asked  # until it stops
-    # Answered while bob's spec is checked beside the render: the checks run off the loop.
+    # Answered while bob's spec is checked beside the render, before the grace runs out.
     assert answered < CANCEL_GRACE_S, f"the cancel was answered after {answered:.1f} s"
     cancelled = wait_state(alice, job.name, (pb.JOB_STATE_CANCELLED, pb.JOB_STATE_FAILED, pb.JOB_STATE_SUCCEEDED), timeout=60)
     assert cancelled.state == pb.JOB_STATE_CANCELLED, cancelled

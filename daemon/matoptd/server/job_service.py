@@ -16,9 +16,10 @@ from matopt_api import costs, enums
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
+from ..engine_api import ParameterInfo
 from ..errors import FailedPrecondition
 from ..logs import about
-from ..records import ACTIVE, JobRecord, Phase
+from ..records import ACTIVE, JobRecord, Phase, SceneRecord
 from ..store.outputs import results_from_history
 from . import admission, convert, job_spec
 from .backend import Backend
@@ -48,9 +49,9 @@ class JobService(rpc.JobServiceServicer):
             existing = self.store.job_by_request(user, request.request_id)
             if existing:
                 return convert.job_to_pb(existing)
-        # Off the event loop: the checks decode .npy values and read image headers, which
-        # beside CPU workers, at the server's low priority, takes seconds; a cancel or a
-        # status call from another user is answered meanwhile.
+        # Off the event loop: the checks decode .npy values and read image headers, which for
+        # large values, beside CPU workers at the server's low priority, takes a while; other
+        # users' calls (a cancel, a status) are answered meanwhile.
         scene, params, built, estimate = await asyncio.to_thread(self._checked, user, request)
         settings = built.settings
         with self.backend.tasks.hold(user):
@@ -69,7 +70,9 @@ class JobService(rpc.JobServiceServicer):
                  extra=about(job.name, user))
         return convert.job_to_pb(created)
 
-    def _checked(self, user: str, request: pb.CreateJobRequest):
+    def _checked(self, user: str, request: pb.CreateJobRequest
+                 ) -> tuple[SceneRecord, dict[str, ParameterInfo], job_spec.Built,
+                            admission.Estimate]:
         """The spec checked and defaulted, and the job's cost admitted: what needs no worker."""
         self._admit_another(user)
         scene = self.store.get_scene(user, resource("scenes", request.spec.scene))

@@ -13,7 +13,7 @@ from google.protobuf import empty_pb2
 from matopt_api.v1 import matopt_pb2 as pb
 from matopt_api.v1 import matopt_pb2_grpc as rpc
 
-from ..engine_api import ParameterInfo
+from ..engine_api import ParameterInfo, RenderRequest
 from ..errors import FailedPrecondition, InvalidArgument
 from ..records import SceneRecord
 from ..settings import SceneInput
@@ -109,7 +109,8 @@ class SceneService(rpc.SceneServiceServicer):
         return pb.RenderSceneResponse(images=[convert.image_to_pb(keep_image(i, put))
                                               for i in images])
 
-    def _render_checked(self, user: str, request: pb.RenderSceneRequest):
+    def _render_checked(self, user: str, request: pb.RenderSceneRequest
+                        ) -> tuple[SceneInput, RenderRequest]:
         """The render asked for, checked and admitted: what needs no worker."""
         scene = self.store.get_scene(user, resource("scenes", request.name))
         self.blobs.check_room(user)
