@@ -92,8 +92,8 @@ class Settings:
     # that an estimate made from a job's path (an average of its end) is judged on the same runs
     paths: bool = False
     # real_scenes, defaults_matrix: the daemon's jobs given the thesis's bounds the plain loop
-    # runs with (Table 4's eta at most 1.55, its start), so that both sides know the same
-    thesis_bounds: bool = False
+    # runs with (Table 4's eta at most 1.55, its start), so that both sides solve one problem
+    thesis_bounds: bool = True
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,8 +17,9 @@ fit that very image.
   0.01, albedo (0.412, 0.824, 0.999), sigma_t 0.4, eta 1.49; start 0.98, 0.01 grey, 0.99, 1.55.
   Plain: Adam 0.03, eta's rate 0.003 and eta <= 1.55 (the thesis's), MSE, 8 spp, constant.
 
-Both sides clip to the ranges the daemon lists (besides the thesis's eta bound on the plain
-side). The daemon job sets only the parameters, their starts, the ground truth, the seed, the
+Both sides clip to the ranges the daemon lists and to the thesis's eta bound (the daemon's
+job is told it too, so that both solve one problem; ``--no-thesis-bounds`` leaves it to the plain
+side, as the rows before 2026-12-01 ran). The daemon job sets only the parameters, their starts, the ground truth, the seed, the
 iteration count and the plain loop's spp (both sides render the same samples per iteration; the
 daemon's default of 16 gave Table 4's defaults twice the plain loop's 8). Where the daemon has
 named choices (``Job.choices``), each one in force is also run turned off (``JobSpec.choices``:
@@ -215,7 +216,7 @@ class Prepared:
     plain_xml: Path
     overrides: dict[str, str]
     ranges: dict[str, tuple[float, float]]
-    thesis_bounds: bool = False  # the daemon's jobs also get the table's plain_max
+    thesis_bounds: bool = True  # the daemon's jobs also get the table's plain_max
 
 
 def prepare(client: mc.Client, table: Table, p: Plan, settings: Settings,

@@ -215,9 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paths", action="store_true",
                    help="defaults_matrix: keep every run's values per iteration "
                         "(defaults_matrix-paths.jsonl in --out)")
-    p.add_argument("--thesis-bounds", action="store_true",
+    p.add_argument("--thesis-bounds", action=argparse.BooleanOptionalAction, default=True,
                    help="real_scenes, defaults_matrix: the daemon's jobs get the thesis's bounds "
-                   "the plain loop runs with (Table 4's eta at most 1.55, its start)")
+                   "the plain loop runs with (Table 4's eta at most 1.55, its start), so that "
+                   "both sides solve one problem (default); --no-thesis-bounds leaves them to "
+                   "the plain loop alone, as the rows before 2026-12-01 were run")
     p.add_argument("--candidate-only", action="store_true",
                    help="defaults_matrix, stability: the --with-choice job in place of the "
                    "defaults, judged as they are (the plain loop at equal time runs for its "
@@ -233,6 +235,9 @@ def main(argv: list[str] | None = None) -> int:
     for c in args.with_choice:
         if "=" not in c:
             p.error(f"--with-choice wants NAME=VALUE, got {c!r}")
+    if args.candidate_only and not args.with_choice:
+        p.error("--candidate-only runs the --with-choice job in the defaults' place: "
+                "name one with --with-choice NAME=VALUE")
     try:  # a bad candidate says so here, not after a daemon started and a case ran
         common.candidate(dict(c.split("=", 1) for c in args.with_choice))
     except ValueError as e:

@@ -77,10 +77,14 @@ def test_a_candidate_names_choices_and_jobspec_settings_and_a_bad_value_says_wha
 
 def test_a_bad_candidate_stops_the_bench_before_any_case_runs(capsys):
     import run
-    for bad, said in (("schedule=linear", "not one of SCHEDULE_UNSPECIFIED, SCHEDULE_COSINE"),
-                      ("gauss_newton", "wants NAME=VALUE, got 'gauss_newton'")):
+    for argv, said in ((["--with-choice", "schedule=linear"],
+                        "not one of SCHEDULE_UNSPECIFIED, SCHEDULE_COSINE"),
+                       (["--with-choice", "gauss_newton"],
+                        "wants NAME=VALUE, got 'gauss_newton'"),
+                       # without a candidate it would run the defaults and call them one
+                       (["--candidate-only"], "name one with --with-choice NAME=VALUE")):
         with pytest.raises(SystemExit) as stopped:
-            run.main(["--only", "defaults_matrix", "--with-choice", bad])
+            run.main(["--only", "defaults_matrix", *argv])
         assert stopped.value.code == 2
         assert said in capsys.readouterr().err
 
@@ -110,9 +114,9 @@ def test_a_cells_paths_are_written_a_line_per_run_and_read_back_as_they_were(tmp
         assert row["values"] == r.paths and row["seconds"] == r.seconds
 
 
-def test_the_thesis_bounds_reach_the_daemons_jobs_only_when_asked():
-    """--thesis-bounds: the daemon's jobs get Table 4's eta <= 1.55, as its plain loop does;
-    without it only the plain preset (equal work) has it."""
+def test_the_thesis_bounds_reach_the_daemons_jobs_by_default_and_leave_them_when_asked():
+    """By default the daemon's jobs get Table 4's eta <= 1.55, as its plain loop does (both
+    sides solve one problem); --no-thesis-bounds leaves it to the plain preset (equal work)."""
     table = TABLES["table4"]
     eta = "object_bsdf.eta"
 
