@@ -185,6 +185,65 @@ def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_do
         assert not choice.applies and all(r.decays for r in records.values())
 
 
+class _Walk:
+    """What ConstantRate's hooks read of the loop: theta_{i-1} of each key and its rate."""
+
+    def __init__(self, choice):
+        self.choice, self.values = choice, {}
+
+    def value(self, key):
+        return self.values.get(key)
+
+    latent = value
+
+    def rate(self, key):
+        return self.choice.rate(None, 0.03)
+
+    def step(self, values: dict) -> float:
+        self.values = {k: np.asarray(v, float) for k, v in values.items()}
+        self.choice.before_render(self)
+        return self.choice.share
+
+
+def test_a_medium_kept_whole_until_it_settles_steps_at_a_shrinking_share_after():
+    """medium_constant_rate=settle: the full rate while the pair descends steadily; each
+    window in which both only jitter halves it, down to the schedule's floor (a tenth)."""
+    settings, records = _interface(medium_constant_rate="settle")
+    choice = MediumConstantRate(settings)
+    _set_up([choice], settings, records)
+    assert choice.settle and [k for k, r in records.items() if not r.decays] == [ALBEDO, SIGMA_T]
+    walk = _Walk(choice)
+    # A steady descent (a full step each iteration) keeps the whole rate.
+    shares = [walk.step({ALBEDO: np.full(3, 0.01 + 0.03 * i), SIGMA_T: [0.99 - 0.03 * i]})
+              for i in range(3 * WINDOW)]
+    assert shares[-1] == 1.0 and choice.rate(records[ALBEDO], 0.03) == pytest.approx(0.03)
+    # While sigma_t still descends, the albedo's jitter alone does not shrink the pair's rate.
+    jitter = lambda i: 0.4 + 0.2 * 0.03 * (-1) ** i  # noqa: E731
+    shares = [walk.step({ALBEDO: np.full(3, jitter(i)), SIGMA_T: [2.0 - 0.03 * i]})
+              for i in range(2 * WINDOW)]
+    assert shares[-1] == 1.0
+    # Both jitter: halved after each window of their own, to a tenth and no lower.
+    shares = [walk.step({ALBEDO: np.full(3, jitter(i)), SIGMA_T: [0.04 + 1e-4 * (-1) ** i]})
+              for i in range(6 * (WINDOW + 1))]
+    assert shares[WINDOW - 1] == 1.0 and shares[WINDOW] == 0.5
+    assert shares[2 * WINDOW + 1] == 0.25 and shares[-1] == pytest.approx(0.1)
+    assert choice.rate(records[SIGMA_T], 0.03) == pytest.approx(0.003)
+    assert "(now 0.1)" in choice.why
+    # A job restored from a checkpoint goes on at the share it left with.
+    settings, records = _interface(medium_constant_rate="settle")
+    again = MediumConstantRate(settings)
+    _set_up([again], settings, records, choice.state())
+    assert again.share == pytest.approx(0.1)
+    # Plain "on" keeps the full rate to the end, whatever the path.
+    settings, records = _interface()
+    whole = MediumConstantRate(settings)
+    _set_up([whole], settings, records)
+    walk = _Walk(whole)
+    for i in range(3 * WINDOW):
+        walk.step({ALBEDO: np.full(3, jitter(i)), SIGMA_T: [0.04]})
+    assert not whole.settle and whole.rate(records[ALBEDO], 0.03) == 0.03
+
+
 def test_a_dielectrics_width_around_a_medium_steps_at_half_its_listed_rate():
     settings, records = _interface(slow_interface_width="on")  # off unless named
     choice = SlowInterfaceWidth(settings)
@@ -281,6 +340,8 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
     ({"eta_differences": "full:2"}, "choice 'eta_differences' cannot be 'full:2': give on, "
                                     "off, quarter or full, optionally with :ALPHA (the width "
                                     "below which they apply, in (0, 1]"),
+    ({"medium_constant_rate": "slow"}, "choice 'medium_constant_rate' cannot be 'slow': give "
+                                       "on, off or settle"),
 ])
 def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
     case = ts.table2(res=8)

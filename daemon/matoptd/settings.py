@@ -52,9 +52,12 @@ CHOICES = {
                             "while the interface is rough; off unless turned on",
     "medium_constant_rate": "a homogeneous medium's albedo and extinction, both selected and "
                             "given no rate, stepped at their full rate to the end (the "
-                            "schedule's decay not applied to them)",
+                            "schedule's decay not applied to them; a value of settle: at "
+                            "their full rate while they move steadily, at a shrinking share "
+                            "of it once they jitter)",
     "roughness_constant_rate": "a principled roughness beside a selected eta, given no rate, "
-                               "stepped at its full rate to the end; off unless turned on",
+                               "stepped at its full rate to the end (a value of settle: "
+                               "while it moves steadily); off unless turned on",
     "roughness_floor": "a principled roughness rendered at no less than its alpha floor "
                        "(0.0318) while Adam steps on below it",
     "multires": "textures and grids optimized coarse to fine (a value of nearest or linear "
@@ -131,8 +134,21 @@ def differences(value: str) -> Differences:
     return Differences(DIFFERENCE_SPP[share], width)
 
 
+def settling(name: str) -> Callable[[str], bool]:
+    """The value parser of a constant-rate choice: "on" (the full rate to the end) or
+    "settle" (the full rate while its variables move steadily, then a shrinking share):
+    True for settle. ValueError saying what it may be."""
+    def parse(value: str) -> bool:
+        if value not in ("on", "settle"):
+            raise ValueError(f"choice '{name}' cannot be '{value}': give on, off or settle")
+        return value == "settle"
+    return parse
+
+
 # Choices whose value says more than on/off: name -> its parser (ValueError for a bad one).
-CHOICE_OPTIONS = {"multires": coarse_to_fine, "eta_differences": differences}
+CHOICE_OPTIONS = {"multires": coarse_to_fine, "eta_differences": differences,
+                  "medium_constant_rate": settling("medium_constant_rate"),
+                  "roughness_constant_rate": settling("roughness_constant_rate")}
 
 
 @dataclass(frozen=True)
