@@ -262,8 +262,10 @@ def _estimate_beside(alice, bob, mine, other, stepped: list[float]) -> None:
     ended = time.monotonic()
     done = alice.jobs.GetJob(pb.GetJobRequest(name=mine.name))
     assert not any("not estimated" in n for n in done.notes), done.notes
-    for colour in alice.jobs.GetJobResult(pb.GetJobResultRequest(
-            name=mine.name, which=pb.WHICH_LAST)).parameters:
+    colours = alice.jobs.GetJobResult(pb.GetJobResultRequest(
+        name=mine.name, which=pb.WHICH_LAST)).parameters
+    assert sorted(c.key for c in colours) == ["green.reflectance.value", "red.reflectance.value"]
+    for colour in colours:
         assert len(colour.standard_error) == 3 and np.all(np.isfinite(colour.standard_error)), \
             colour
     assert noted, done.notes
