@@ -19,6 +19,7 @@ from matoptd.engine.choices.eta_hold import EtaHold
 from matoptd.engine.choices.linear_extinction import LinearExtinction
 from matoptd.engine.choices.log_space import LogSpace
 from matoptd.engine.choices.medium_constant_rate import MediumConstantRate
+from matoptd.engine.choices.medium_damping import BETA_1, MediumDamping
 from matoptd.engine.choices.roughness_constant_rate import RoughnessConstantRate
 from matoptd.engine.choices.slow_interface_width import SlowInterfaceWidth
 from matoptd.engine.choices.settling import SETTLED, WINDOW, Path
@@ -38,7 +39,8 @@ def _settings(**choices: str) -> api.JobSettings:
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
-        "slow_interface_width", "roughness_constant_rate", "gauss_newton"]  # the candidates
+        "slow_interface_width", "medium_damping", "roughness_constant_rate",
+        "gauss_newton"]  # the candidates
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     assert _settings(all="on").choice_on("roughness_constant_rate")
     off = _settings(eta_differences="off")
@@ -183,6 +185,30 @@ def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_do
         choice = MediumConstantRate(settings)
         _set_up([choice], settings, records)
         assert not choice.applies and all(r.decays for r in records.values())
+
+
+def test_a_medias_pair_lowers_adams_momentum_only_when_named():
+    """medium_damping, a candidate: named, a job with a medium's albedo and sigma_t takes
+    Adam's beta_1 at 0.5; unnamed, it says what it would do and leaves Adam's 0.9."""
+    settings, records = _interface(medium_damping="on")
+    choice = MediumDamping(settings)
+    _set_up([choice], settings, records)
+    assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]
+    assert choice.adam_beta_1 == BETA_1 == 0.5 and "beta_1 0.5" in choice.why
+    settings, records = _interface()
+    choice = MediumDamping(settings)
+    _set_up([choice], settings, records)
+    assert not choice.on and choice.applies and choice.adam_beta_1 is None
+    assert "beta_1 0.9" in choice.why
+    # The swing is the pair's: sigma_t alone, or a pair with a rate the job gave, is not taken.
+    alone = _interface(medium_damping="on")
+    del alone[1][ALBEDO]
+    given = _interface(medium_damping="on")
+    given[1][SIGMA_T].rate_given = True
+    for settings, records in (alone, given):
+        choice = MediumDamping(settings)
+        _set_up([choice], settings, records)
+        assert not choice.applies and choice.keys == []
 
 
 class _Walk:
@@ -381,6 +407,8 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert not any("0.1 in place of 0.2" in n for n in held.notes)
     assert choices["medium_constant_rate"].on
     assert all(k in choices["medium_constant_rate"].why for k in ("albedo", "sigma_t"))
+    # Adam's momentum as Dr.Jit's (its lowering, a candidate, off unless named)
+    assert not choices["medium_damping"].on and "beta_1 0.9" in choices["medium_damping"].why
     # No release before WINDOW steps of the others are known.
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))

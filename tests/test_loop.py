@@ -183,6 +183,35 @@ def test_a_variable_that_does_not_decay_keeps_its_full_rate_to_the_end(engine):
     assert decayed < 0.15 and loop.rate(RED) == pytest.approx(decayed * loop.records[RED].step_rate)
 
 
+def test_a_choice_that_lowers_adams_momentum_sets_it_for_the_jobs_optimizer(engine):
+    """A choice's adam_beta_1 (medium_damping's) is the beta_1 of the job's one Adam: after
+    its first step each component's first moment is (1 - beta_1) g and its second moment
+    (1 - beta_2) g^2, so m^2 / (1 - beta_1)^2 = v / (1 - beta_2) holds at 0.5, not at 0.9."""
+    optimize, choices, _ = engine
+
+    class Damper(choices.Choice):
+        name = "damper"
+        switchable = False
+
+        def select(self, ctx, records):
+            return [RED]
+
+        def setup(self, ctx, records, state):
+            self.applies, self.adam_beta_1 = True, 0.5
+
+    scene = _scene()
+    settings = _settings()
+    refs = _references(optimize, scene)
+    for made, beta_1 in (([Damper(settings)], 0.5), ([], 0.9)):
+        loop = optimize.Optimization(scene, settings, refs, made)
+        assert loop.opt.beta_1 == beta_1
+        loop.step()
+        _, m, v, _ = loop.opt.state[GREEN][3]
+        m, v = np.asarray(m), np.asarray(v)
+        assert np.all(v > 0)
+        np.testing.assert_allclose(m ** 2 / (1 - beta_1) ** 2, v / (1 - 0.999), rtol=1e-3)
+
+
 def test_a_choices_state_and_the_loop_survive_a_checkpoint(engine):
     optimize, choices, _ = engine
     Holder, Halver = _fakes(choices, [])

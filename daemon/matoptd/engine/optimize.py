@@ -123,6 +123,8 @@ class Optimization:
         self.choices, self.active = self.hooks.choices, self.hooks.active
         self.maps = Maps(self.active)
         self.opt.uniform = any(c.adam_uniform for c in self.active)
+        self.opt.beta_1 = min([c.adam_beta_1 for c in self.active if c.adam_beta_1 is not None],
+                              default=self.opt.beta_1)
         for key, r in self.records.items():
             latent = self.maps.encode(key, r.start)
             made = self.maps.variable(key, latent)

@@ -119,6 +119,19 @@ def homogeneous_medium_property(key: str, kind: str) -> bool:
     return medium_property(key) and kind in ("scalar", "rgb")
 
 
+def medium_pairs(records) -> list[str]:
+    """The keys of every homogeneous medium whose albedo and sigma_t are both selected, neither
+    given a rate (``records``: key -> ParamRecord). The pair share a valley (a darker albedo
+    and a thinner medium look alike), which is what the choices that take them mean."""
+    pairs: dict[str, list[str]] = {}  # the medium's key prefix -> its selected pair
+    for k, r in records.items():
+        name = property_name(k)
+        if (name in ("albedo", "sigma_t") and r.scene is not None and not r.rate_given
+                and homogeneous_medium_property(k, r.kind)):
+            pairs.setdefault(k[:k.rindex(name)], []).append(k)
+    return [k for keys in pairs.values() if len(keys) == 2 for k in keys]
+
+
 def dielectric_eta(key: str) -> bool:
     """`obj.eta` is a dielectric's or the principled BSDF's relative IOR; a conductor's complex
     IOR is a texture (`obj.eta.value`) and only needs to be non-negative."""

@@ -30,6 +30,7 @@ from .large_steps import LargeSteps
 from .linear_extinction import LinearExtinction
 from .log_space import LogSpace
 from .medium_constant_rate import MediumConstantRate
+from .medium_damping import MediumDamping
 from .multires import Multires
 from .roughness_constant_rate import RoughnessConstantRate
 from .roughness_floor import RoughnessFloor
@@ -38,8 +39,8 @@ from .smoothness import Smoothness
 
 REGISTRY: tuple[type[Choice], ...] = (
     FilterScaling, Depth, BlackStart, Multires, LargeSteps, LogSpace, LinearExtinction,
-    SlowInterfaceWidth, MediumConstantRate, RoughnessConstantRate, RoughnessFloor,
-    ExposureGains, Smoothness, EtaHold, EtaDifferences, GaussNewton, Frozen)
+    SlowInterfaceWidth, MediumConstantRate, MediumDamping, RoughnessConstantRate,
+    RoughnessFloor, ExposureGains, Smoothness, EtaHold, EtaDifferences, GaussNewton, Frozen)
 
 # The API names every switchable choice (settings.CHOICES): the two lists are one fact.
 assert {c.name for c in REGISTRY if c.switchable} == set(CHOICES), "settings.CHOICES"

@@ -85,6 +85,7 @@ class Choice:
         self.why = ""
         self.keys: list[str] = []    # the variables it concerns (``select``)
         self.adam_uniform = False    # True: Adam in its uniform mode (one per optimizer)
+        self.adam_beta_1: float | None = None  # Adam's beta_1 (one per optimizer); None: 0.9
         self.seconds = 0.0           # its hooks' time (per-iteration hooks only)
         self.setup_seconds = 0.0     # its setup's time
 

@@ -22,8 +22,6 @@ from __future__ import annotations
 from .. import parameters
 from .constant_rate import ConstantRate
 
-PAIR = {"albedo", "sigma_t"}  # the two a medium's brightness can come from
-
 
 class MediumConstantRate(ConstantRate):
     name = "medium_constant_rate"
@@ -34,10 +32,4 @@ class MediumConstantRate(ConstantRate):
     def select(self, ctx, records):
         # The valley is the pair's: a medium with only one of them selected, or a rate the
         # job gave, keeps the schedule.
-        pairs: dict[str, list[str]] = {}  # the medium's key prefix -> its selected pair
-        for k, r in records.items():
-            name = parameters.property_name(k)
-            if (name in PAIR and r.scene is not None and not r.rate_given
-                    and parameters.homogeneous_medium_property(k, r.kind)):
-                pairs.setdefault(k[:k.rindex(name)], []).append(k)
-        return [k for keys in pairs.values() if len(keys) == len(PAIR) for k in keys]
+        return parameters.medium_pairs(records)
