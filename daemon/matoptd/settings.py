@@ -58,7 +58,8 @@ CHOICES = {
     "medium_damping": "Adam's beta_1 at 0.5 in place of 0.9 in a job that selects a homogeneous "
                       "medium's albedo and extinction, both given no rate (Dr.Jit's is per "
                       "optimizer: every variable of the job), so the pair does not swing along "
-                      "the valley it shares; off unless turned on",
+                      "the valley it shares; off unless turned on (measured with "
+                      "medium_constant_rate off beside it)",
     "roughness_constant_rate": "a principled roughness beside a selected eta, given no rate, "
                                "stepped at its full rate to the end (a value of settle: "
                                "while it moves steadily); off unless turned on",

@@ -13,11 +13,12 @@ by iteration 75, with sigma_t swinging against it, on the daemon's side and on M
 loop alike: at the 100th iteration the swing had not died out, and where a job ended depended
 on its phase. At BETA_1 the pair comes down to the floor with little overshoot.
 
-The price is noisier steps: each averages fewer gradients. Dr.Jit's Adam has one beta_1 per
-optimizer, so every variable of the job takes it (as large_steps' uniform mode). Only for a
-medium whose albedo and sigma_t are both selected, neither given a rate (as
-medium_constant_rate). A candidate, off unless named: the cells of bench/defaults_matrix.py it
-was measured on are in docs/benchmarks.md.
+The price is noisier steps: each averages fewer gradients. At medium_constant_rate's undecayed
+rate the pair then jitters to the end, so it was measured with that choice off (the schedule's
+decay brings the steps down). Dr.Jit's Adam has one beta_1 per optimizer, so every variable of
+the job takes it (as large_steps' uniform mode). Only for a medium whose albedo and sigma_t are
+both selected, neither given a rate (as medium_constant_rate). A candidate, off unless named:
+the cells of bench/defaults_matrix.py it was measured on are in docs/benchmarks.md.
 """
 
 from __future__ import annotations
