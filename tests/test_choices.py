@@ -368,6 +368,8 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
                                     "below which they apply, in (0, 1]"),
     ({"medium_constant_rate": "slow"}, "choice 'medium_constant_rate' cannot be 'slow': give "
                                        "on, off or settle"),
+    # settle is the pair's rate's value, not the momentum's: the two are named side by side
+    ({"medium_damping": "settle"}, "choice 'medium_damping' cannot be 'settle': give on or off"),
 ])
 def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
     case = ts.table2(res=8)
