@@ -50,6 +50,28 @@ def test_a_start_far_away_shrinks_the_late_steps():
     assert far[0, 0] < 0.5 * near[0, 0]
 
 
+def test_the_scatter_follows_the_jobs_momentum():
+    """medium_damping runs Adam at beta_1 0.5: the model carries the job's beta_1 and agrees
+    with Adam itself, simulated on a quadratic with noisy gradients over many chains, where
+    Dr.Jit's 0.9 in its place would call the scatter 15% narrower than it is."""
+    h, q, steps, rate = 4.0, 9.0, 300, 1.0
+    rng = np.random.default_rng(0)
+    d, m, v = np.zeros(20000), np.zeros(20000), np.zeros(20000)
+    for t in range(1, steps + 1):
+        g = h * d + rng.normal(0.0, 3.0, d.shape)
+        m, v = 0.5 * m + 0.5 * g, BETA_2 * v + (1 - BETA_2) * g * g
+        d = d - rate * np.sqrt(1 - BETA_2 ** t) / (1 - 0.5 ** t) * m / (np.sqrt(v) + 1e-8)
+
+    def model(beta_1: float) -> float:
+        v_hat = np.array([np.mean(v)]) / (1 - BETA_2 ** steps)
+        dynamics = _dynamics(np.full((steps, 1), rate), v_hat)
+        dynamics.beta_1 = beta_1
+        return adam_scatter(np.array([[h]]), np.array([[q]]), dynamics)[0, 0]
+
+    assert model(0.5) == pytest.approx(np.var(d), rel=0.05)
+    assert model(0.9) < 0.9 * np.var(d)
+
+
 def test_crossing_two_estimates_keeps_their_noise_out_of_j_transpose_j():
     rng = np.random.default_rng(1)
     j = rng.normal(size=(400, 2))

@@ -78,6 +78,7 @@ class Dynamics:
                                  # it is held as given: a texture's mean over its texels)
     gradients: np.ndarray        # (n, p): the gradients of the last steps, NaN where a
                                  # component's were not recorded
+    beta_1: np.ndarray | float = BETA_1  # (p,): Adam's first-moment decay per component
 
 
 def crossed(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -207,6 +208,7 @@ def adam_scatter(hessian: np.ndarray, noise: np.ndarray, dynamics: Dynamics,
     (``second_moment`` minus the model's value at ``count``), found by a few passes."""
     p = len(hessian)
     eye = np.eye(p)
+    b1 = np.diag(np.broadcast_to(np.asarray(dynamics.beta_1, np.float64), (p,)))
     excess = np.zeros(p)
     fixed = dynamics.second_moment / (1 - BETA_2 ** max(dynamics.count, 1))
     covariance = np.zeros((2 * p, 2 * p))
@@ -217,11 +219,12 @@ def adam_scatter(hessian: np.ndarray, noise: np.ndarray, dynamics: Dynamics,
             g2 = np.diag(hessian @ covariance[:p, :p] @ hessian) + np.diag(noise)
             raw = BETA_2 * raw + (1 - BETA_2) * g2
             v = np.where(dynamics.measured, (raw + excess) / (1 - BETA_2 ** t), fixed)
-            d = np.diag(_bounded(rate / ((1 - BETA_1 ** t) * (np.sqrt(np.maximum(v, 0))
-                                                              + EPSILON)), hessian))
-            a = np.block([[eye - (1 - BETA_1) * d @ hessian, -BETA_1 * d],
-                          [(1 - BETA_1) * hessian, BETA_1 * eye]])
-            b = np.vstack([-(1 - BETA_1) * d, (1 - BETA_1) * eye])
+            d = np.diag(_bounded(rate / ((1 - np.diag(b1) ** t) * (np.sqrt(np.maximum(v, 0))
+                                                                    + EPSILON)), hessian))
+            # m' = b1 m + (1 - b1) g, d' = d - D m', per component's b1
+            a = np.block([[eye - d @ (eye - b1) @ hessian, -d @ b1],
+                          [(eye - b1) @ hessian, b1]])
+            b = np.vstack([-d @ (eye - b1), eye - b1])
             covariance = a @ covariance @ a.T + b @ noise @ b.T
         # The noise alone up to Adam's count (steps after the kept iteration included)
         for _ in range(len(dynamics.rates), dynamics.count):

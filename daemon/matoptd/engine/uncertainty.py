@@ -35,6 +35,7 @@ class Adam:
     count: int
     rates: np.ndarray           # (steps,)
     gradients: np.ndarray | None = None  # (n, components) recorded, latent
+    beta_1: float = covariance.BETA_1    # its first moment's decay (medium_damping lowers it)
 
 
 @dataclass
@@ -91,9 +92,10 @@ def _dynamics(comps: list[_Component], quantities: list[Quantity], adam: dict[st
                    default=0)
     gradients = np.full((recorded, len(comps)), np.nan)
     count = max(a.count for a in adam.values())
+    beta_1 = np.full(len(comps), covariance.BETA_1)
     for i, c in enumerate(comps):
         a = adam[c.key or f"gain{c.sensor}"]
-        rates[:, i] = a.rates
+        rates[:, i], beta_1[i] = a.rates, a.beta_1
         q = by_key.get(c.key)
         if q is not None and q.channels:
             # A mode of weights r_k (a mean level: all 1) moves by its texels' steps
@@ -110,7 +112,7 @@ def _dynamics(comps: list[_Component], quantities: list[Quantity], adam: dict[st
         second[i] = a.second_moment[c.index]
         if a.gradients is not None and len(a.gradients):
             gradients[-len(a.gradients):, i] = a.gradients[:, c.index]
-    return covariance.Dynamics(rates, second, count, measured, gradients)
+    return covariance.Dynamics(rates, second, count, measured, gradients, beta_1)
 
 
 def _report(comps: list[_Component], quantities: list[Quantity], sensors: dict[int, Sensor],
@@ -334,7 +336,8 @@ def _adam(opt: Optimization, kept: Best) -> dict[str, Adam]:
                              for i in range(max(kept.iteration, 0))], per)
         out[key] = Adam(np.asarray(v, dtype=np.float64).ravel(),
                         int(np.asarray(t).ravel()[0]), rate * factors,
-                        np.array([np.ravel(g) for g in recorded]) if recorded else None)
+                        np.array([np.ravel(g) for g in recorded]) if recorded else None,
+                        opt.opt.beta_1)
     return out
 
 
