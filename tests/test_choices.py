@@ -39,7 +39,7 @@ def _settings(**choices: str) -> api.JobSettings:
 
 def test_every_choice_is_on_unless_turned_off_by_name_or_all():
     assert [c.name for c in REGISTRY if not _settings().choice_on(c.name)] == [
-        "slow_interface_width", "medium_constant_rate", "roughness_constant_rate",
+        "slow_interface_width", "medium_damping", "roughness_constant_rate",
         "gauss_newton"]  # the candidates
     assert _settings(gauss_newton="on").choice_on("gauss_newton")
     assert _settings(all="on").choice_on("roughness_constant_rate")
@@ -165,21 +165,21 @@ def test_a_principled_roughness_beside_eta_keeps_its_full_rate_only_when_named()
 
 
 def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_does():
-    settings, records = _interface(medium_constant_rate="on")  # a candidate: named
+    settings, records = _interface()  # on by default
     choice = MediumConstantRate(settings)
     _set_up([choice], settings, records)
     assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]  # not the grid
     assert [k for k, r in records.items() if not r.decays] == [ALBEDO, SIGMA_T]
-    # Off (by default), it says what it would do and leaves every variable to the schedule.
-    settings, records = _interface()
+    # Off, it says what it would do and leaves every variable to the schedule.
+    settings, records = _interface(medium_constant_rate="off")
     choice = MediumConstantRate(settings)
     _set_up([choice], settings, records)
     assert not choice.on and choice.applies and "decay with the schedule" in choice.why
     assert all(r.decays for r in records.values())
     # The valley is the pair's: sigma_t alone, or a pair with a rate the job gave, decays.
-    alone = _interface(medium_constant_rate="on")
+    alone = _interface()
     del alone[1][ALBEDO]
-    given = _interface(medium_constant_rate="on")
+    given = _interface()
     given[1][SIGMA_T].rate_given = True
     for settings, records in (alone, given):
         choice = MediumConstantRate(settings)
@@ -187,23 +187,23 @@ def test_a_medias_albedo_and_extinction_keep_their_full_rate_and_nothing_else_do
         assert not choice.applies and all(r.decays for r in records.values())
 
 
-def test_a_medias_pair_lowers_adams_momentum_unless_turned_off():
-    """medium_damping, on by default: a job with a medium's albedo and sigma_t takes Adam's
-    beta_1 at 0.5; turned off, it says what it would do and leaves Adam's 0.9."""
-    settings, records = _interface()
+def test_a_medias_pair_lowers_adams_momentum_only_when_named():
+    """medium_damping, a candidate: named, a job with a medium's albedo and sigma_t takes
+    Adam's beta_1 at 0.5; unnamed, it says what it would do and leaves Adam's 0.9."""
+    settings, records = _interface(medium_damping="on")
     choice = MediumDamping(settings)
     _set_up([choice], settings, records)
     assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]
     assert choice.adam_beta_1 == BETA_1 == 0.5 and "beta_1 0.5" in choice.why
-    settings, records = _interface(medium_damping="off")
+    settings, records = _interface()
     choice = MediumDamping(settings)
     _set_up([choice], settings, records)
     assert not choice.on and choice.applies and choice.adam_beta_1 is None
     assert "beta_1 0.9" in choice.why
     # The swing is the pair's: sigma_t alone, or a pair with a rate the job gave, is not taken.
-    alone = _interface()
+    alone = _interface(medium_damping="on")
     del alone[1][ALBEDO]
-    given = _interface()
+    given = _interface(medium_damping="on")
     given[1][SIGMA_T].rate_given = True
     for settings, records in (alone, given):
         choice = MediumDamping(settings)
@@ -403,13 +403,14 @@ def test_eta_waits_while_the_medium_behind_it_still_moves(stubs):
     assert "sigma_t" not in choices["log_space"].why
     assert any("sigma_t" in n and "stepped linearly" in n for n in held.notes)
     # The interface's width at its listed rate (its half rate off unless named); the medium's
-    # pair on the schedule (undecayed, a candidate, off unless named), Adam's momentum lowered.
+    # pair undecayed.
     assert not choices["slow_interface_width"].on
     assert "alpha" in choices["slow_interface_width"].why
     assert not any("0.1 in place of 0.2" in n for n in held.notes)
-    assert not choices["medium_constant_rate"].on
+    assert choices["medium_constant_rate"].on
     assert all(k in choices["medium_constant_rate"].why for k in ("albedo", "sigma_t"))
-    assert choices["medium_damping"].on and "beta_1 0.5" in choices["medium_damping"].why
+    # Adam's momentum as Dr.Jit's (its lowering, a candidate, off unless named)
+    assert not choices["medium_damping"].on and "beta_1 0.9" in choices["medium_damping"].why
     # No release before WINDOW steps of the others are known.
     assert etas(held)[:WINDOW + 1] == pytest.approx([case.start[eta][0]] * (WINDOW + 1))
     free = etas(_job(stubs, case, 12, eta_hold="off"))

@@ -54,12 +54,12 @@ CHOICES = {
                             "given no rate, stepped at their full rate to the end (the "
                             "schedule's decay not applied to them; a value of settle: at "
                             "their full rate while they move steadily, at a shrinking share "
-                            "of it once they jitter); off unless turned on",
+                            "of it once they jitter)",
     "medium_damping": "Adam's beta_1 at 0.5 in place of 0.9 in a job that selects a homogeneous "
                       "medium's albedo and extinction, both given no rate (Dr.Jit's is per "
                       "optimizer: every variable of the job), so the pair does not swing along "
-                      "the valley it shares (the pair's rate decays with the schedule "
-                      "beside it, medium_constant_rate being off)",
+                      "the valley it shares; off unless turned on (measured with "
+                      "medium_constant_rate off beside it)",
     "roughness_constant_rate": "a principled roughness beside a selected eta, given no rate, "
                                "stepped at its full rate to the end (a value of settle: "
                                "while it moves steadily); off unless turned on",
@@ -85,7 +85,7 @@ CHOICES = {
               "passes: no Python tracing per iteration; same results",
 }
 # Choices a job turns on by name (or with ALL_CHOICES): candidates until the matrix decides.
-OFF_UNLESS_NAMED = ("gauss_newton", "medium_constant_rate", "roughness_constant_rate",
+OFF_UNLESS_NAMED = ("gauss_newton", "medium_damping", "roughness_constant_rate",
                     "slow_interface_width")
 CHOICE_VALUES = ("on", "off")  # what JobSettings.choices accepts for each name
 ALL_CHOICES = "all"            # the key that stands for every name

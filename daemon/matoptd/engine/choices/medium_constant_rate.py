@@ -13,9 +13,8 @@ full rate), 1.2% over 5 seeds.
 
 Only for a medium whose albedo and sigma_t are both selected, neither given a rate: the
 valley is the pair's, and a rate the job gave is the job's. Grids keep the decay: their texels
-are many and each is seen by few pixels. A candidate, off unless named since medium_damping
-took its place: with Adam's momentum lowered, the pair swings no more, and at the undecayed
-rate it jitters to the end instead (Table 4's cells in docs/benchmarks.md).
+are many and each is seen by few pixels. The cells of bench/defaults_matrix.py it concerns
+(Table 4's) are in docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -14,13 +14,16 @@ loop alike: at the 100th iteration the swing had not died out, and where a job e
 on its phase. At BETA_1 the pair comes down to the floor with little overshoot.
 
 The price is noisier steps: each averages fewer gradients. At medium_constant_rate's undecayed
-rate the pair then jitters to the end, so that choice is off by default and the schedule's
-decay brings the pair's steps down. Dr.Jit's Adam has one beta_1 per optimizer, so every
-variable of the job takes it (as large_steps' uniform mode); BETA_1 on the pair alone, eta and
-the interface's width at 0.9, did no better on Table 4 at max_depth 8, spp 8. Only for a medium
-whose albedo and sigma_t are both selected, neither given a rate (as medium_constant_rate).
-On the nine cells of bench/defaults_matrix.py's Table 4 it ended lower than the defaults
-before it in seven and within the seeds' spread in the other two (docs/benchmarks.md).
+rate the pair then jitters to the end, so it was measured with that choice off (the schedule's
+decay brings the steps down). Dr.Jit's Adam has one beta_1 per optimizer, so every variable of
+the job takes it (as large_steps' uniform mode); BETA_1 on the pair alone, eta and the
+interface's width at 0.9, did no better. Only for a medium whose albedo and sigma_t are both
+selected, neither given a rate (as medium_constant_rate). A candidate, off unless named: on
+Table 4's nine cells of bench/defaults_matrix.py it ended lower than the defaults in seven and
+within the seeds' spread in two. But without the swing's overshoot, and with the decay, a
+short job ends with the pair still climbing: on the 32 px, 60-iteration analogue in
+tests/test_thesis_tables.py the albedo ended 18% off, against 8-9% on the defaults
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations
