@@ -208,7 +208,8 @@ def adam_scatter(hessian: np.ndarray, noise: np.ndarray, dynamics: Dynamics,
     (``second_moment`` minus the model's value at ``count``), found by a few passes."""
     p = len(hessian)
     eye = np.eye(p)
-    b1 = np.diag(np.broadcast_to(np.asarray(dynamics.beta_1, np.float64), (p,)))
+    beta_1 = np.broadcast_to(np.asarray(dynamics.beta_1, np.float64), (p,))
+    b1 = np.diag(beta_1)
     excess = np.zeros(p)
     fixed = dynamics.second_moment / (1 - BETA_2 ** max(dynamics.count, 1))
     covariance = np.zeros((2 * p, 2 * p))
@@ -219,8 +220,8 @@ def adam_scatter(hessian: np.ndarray, noise: np.ndarray, dynamics: Dynamics,
             g2 = np.diag(hessian @ covariance[:p, :p] @ hessian) + np.diag(noise)
             raw = BETA_2 * raw + (1 - BETA_2) * g2
             v = np.where(dynamics.measured, (raw + excess) / (1 - BETA_2 ** t), fixed)
-            d = np.diag(_bounded(rate / ((1 - np.diag(b1) ** t) * (np.sqrt(np.maximum(v, 0))
-                                                                    + EPSILON)), hessian))
+            d = np.diag(_bounded(rate / ((1 - beta_1 ** t) * (np.sqrt(np.maximum(v, 0))
+                                                              + EPSILON)), hessian))
             # m' = b1 m + (1 - b1) g, d' = d - D m', per component's b1
             a = np.block([[eye - d @ (eye - b1) @ hessian, -d @ b1],
                           [(eye - b1) @ hessian, b1]])
