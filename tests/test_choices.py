@@ -191,10 +191,13 @@ def test_a_medias_pair_lowers_adams_momentum_only_when_named():
     """medium_damping, a candidate: named, a job with a medium's albedo and sigma_t takes
     Adam's beta_1 at 0.5; unnamed, it says what it would do and leaves Adam's 0.9."""
     settings, records = _interface(medium_damping="on")
-    choice = MediumDamping(settings)
-    _set_up([choice], settings, records)
+    choice, whole = MediumDamping(settings), MediumConstantRate(settings)
+    _set_up([whole, choice], settings, records)
     assert choice.on and sorted(choice.keys) == [ALBEDO, SIGMA_T]
     assert choice.adam_beta_1 == BETA_1 == 0.5 and "beta_1 0.5" in choice.why
+    # It takes the pair from medium_constant_rate: at the lower momentum the pair decays.
+    assert whole.keys == [] and all(r.decays for r in records.values())
+    assert records[ALBEDO].schedule_begin == 0 and "on the schedule" in choice.why
     settings, records = _interface()
     choice = MediumDamping(settings)
     _set_up([choice], settings, records)
@@ -209,6 +212,55 @@ def test_a_medias_pair_lowers_adams_momentum_only_when_named():
         choice = MediumDamping(settings)
         _set_up([choice], settings, records)
         assert not choice.applies and choice.keys == []
+
+
+class _Climb:
+    """What medium_damping's hook reads of the loop: the iteration, theta_i and its rate."""
+
+    def __init__(self, choice):
+        self.choice, self.values, self.iteration = choice, {}, -1
+
+    def latent(self, key):
+        return self.values[key]
+
+    def rate(self, key):
+        return 0.03
+
+    def step(self, values: dict) -> None:
+        self.iteration += 1
+        self.values = {k: np.asarray(v, float) for k, v in values.items()}
+        self.choice.on_gradient(self)
+
+
+def test_a_damped_medium_keeps_its_full_rate_while_it_climbs_and_decays_once_it_settles():
+    """medium_damping=settle: the pair at its full rate while either still moves steadily;
+    once both only jitter over a window, the schedule's decay runs from that iteration, and a
+    job restored from a checkpoint goes on from it. medium_constant_rate yields the pair."""
+    settings, records = _interface(medium_damping="settle")
+    choice, whole = MediumDamping(settings), MediumConstantRate(settings)
+    _set_up([whole, choice], settings, records)
+    assert whole.keys == [] and sorted(choice.keys) == [ALBEDO, SIGMA_T]
+    assert [k for k, r in records.items() if not r.decays] == [ALBEDO, SIGMA_T]
+    climb = _Climb(choice)
+    jitter = lambda i: 0.4 + 0.2 * 0.03 * (-1) ** i  # noqa: E731
+    # The albedo settles while sigma_t still climbs: both keep their rate.
+    for i in range(3 * WINDOW):
+        climb.step({ALBEDO: np.full(3, jitter(i)), SIGMA_T: [0.1 + 0.03 * i]})
+    assert not records[ALBEDO].decays and not records[SIGMA_T].decays
+    # Both jitter where sigma_t's climb ended: within a window the pair decays, its
+    # schedule begun there.
+    for i in range(WINDOW + 1):
+        climb.step({ALBEDO: np.full(3, jitter(i)), SIGMA_T: [0.97 + 1e-4 * (-1) ** i]})
+        if records[SIGMA_T].decays:
+            break
+    begun = climb.iteration
+    assert 3 * WINDOW < begun <= 4 * WINDOW
+    assert records[ALBEDO].decays and records[SIGMA_T].schedule_begin == begun
+    assert f"settled at iteration {begun}" in choice.why
+    settings, records = _interface(medium_damping="settle")
+    again = MediumDamping(settings)
+    _set_up([again], settings, records, choice.state())
+    assert records[ALBEDO].decays and records[ALBEDO].schedule_begin == begun
 
 
 class _Walk:
@@ -368,8 +420,9 @@ def test_the_status_lists_the_choices_in_force_and_one_can_be_turned_off(stubs):
                                     "below which they apply, in (0, 1]"),
     ({"medium_constant_rate": "slow"}, "choice 'medium_constant_rate' cannot be 'slow': give "
                                        "on, off or settle"),
-    # settle is the pair's rate's value, not the momentum's: the two are named side by side
-    ({"medium_damping": "settle"}, "choice 'medium_damping' cannot be 'settle': give on or off"),
+    # Its value says how the pair decays, not Adam's beta_1
+    ({"medium_damping": "0.7"}, "choice 'medium_damping' cannot be '0.7': give on, off or "
+     "settle"),
 ])
 def test_a_bad_choice_is_refused_naming_it(stubs, choices, message):
     case = ts.table2(res=8)

@@ -58,8 +58,10 @@ CHOICES = {
     "medium_damping": "Adam's beta_1 at 0.5 in place of 0.9 in a job that selects a homogeneous "
                       "medium's albedo and extinction, both given no rate (Dr.Jit's is per "
                       "optimizer: every variable of the job), so the pair does not swing along "
-                      "the valley it shares; off unless turned on (measured with "
-                      "medium_constant_rate off beside it)",
+                      "the valley it shares, the pair on the schedule in place of "
+                      "medium_constant_rate's full rate (a value of settle: at its full rate "
+                      "while it moves steadily, then on the schedule from there); off unless "
+                      "turned on",
     "roughness_constant_rate": "a principled roughness beside a selected eta, given no rate, "
                                "stepped at its full rate to the end (a value of settle: "
                                "while it moves steadily); off unless turned on",
@@ -141,8 +143,9 @@ def differences(value: str) -> Differences:
 
 
 def settling(name: str) -> Callable[[str], bool]:
-    """The value parser of a constant-rate choice: "on" (the full rate to the end) or
-    "settle" (the full rate while its variables move steadily, then a shrinking share):
+    """The value parser of a choice that keeps a rate whole: "on" (a constant-rate choice: the
+    full rate to the end; medium_damping: the schedule's) or "settle" (the full rate while its
+    variables move steadily, then a shrinking share, or medium_damping's schedule from there):
     True for settle. ValueError saying what it may be."""
     def parse(value: str) -> bool:
         if value not in ("on", "settle"):
@@ -154,6 +157,7 @@ def settling(name: str) -> Callable[[str], bool]:
 # Choices whose value says more than on/off: name -> its parser (ValueError for a bad one).
 CHOICE_OPTIONS = {"multires": coarse_to_fine, "eta_differences": differences,
                   "medium_constant_rate": settling("medium_constant_rate"),
+                  "medium_damping": settling("medium_damping"),
                   "roughness_constant_rate": settling("roughness_constant_rate")}
 
 

@@ -13,7 +13,8 @@ full rate), 1.2% over 5 seeds.
 
 Only for a medium whose albedo and sigma_t are both selected, neither given a rate: the
 valley is the pair's, and a rate the job gave is the job's. Grids keep the decay: their texels
-are many and each is seen by few pixels. The cells of bench/defaults_matrix.py it concerns
+are many and each is seen by few pixels. medium_damping, while on, takes the pair and says
+how its rate decays (at Adam's lower momentum the whole rate leaves it jittering). The cells of bench/defaults_matrix.py it concerns
 (Table 4's) are in docs/benchmarks.md.
 """
 
@@ -25,6 +26,7 @@ from .constant_rate import ConstantRate
 
 class MediumConstantRate(ConstantRate):
     name = "medium_constant_rate"
+    yields_to = ("medium_damping",)  # which sets how the pair decays, while on
     why_on = ("stepped at their full rate to the end (no decay): the decay stops a medium's "
               "albedo and extinction short along the valley they share")
     why_off = "decay with the schedule, as every variable does"
