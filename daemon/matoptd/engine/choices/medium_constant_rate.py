@@ -14,8 +14,8 @@ full rate), 1.2% over 5 seeds.
 Only for a medium whose albedo and sigma_t are both selected, neither given a rate: the
 valley is the pair's, and a rate the job gave is the job's. Grids keep the decay: their texels
 are many and each is seen by few pixels. medium_damping, while on, takes the pair and says
-how its rate decays (at Adam's lower momentum the whole rate leaves it jittering). The cells of bench/defaults_matrix.py it concerns
-(Table 4's) are in docs/benchmarks.md.
+how its rate decays (at Adam's lower momentum the whole rate leaves it jittering). The cells
+of bench/defaults_matrix.py it concerns (Table 4's) are in docs/benchmarks.md.
 """
 
 from __future__ import annotations
