@@ -18,7 +18,7 @@ import numpy as np
 
 from ...settings import CHOICE_OPTIONS
 from .base import Choice
-from .settling import WINDOW, Path
+from .settling import WINDOW, paths_state, restored_paths
 
 SHRINK = 0.5   # the share after a window in which the whole group settled
 FLOOR = 0.1    # the schedule's own floor (optimize.schedule_factor)
@@ -35,7 +35,7 @@ class ConstantRate(Choice):
             self.name))
         state = state or {}
         self.share = float(state["share"][0]) if "share" in state else 1.0
-        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(sorted(records))}
+        self.paths = restored_paths(state, sorted(records))
         self._say()
         if self.on:
             for r in records.values():
@@ -65,7 +65,4 @@ class ConstantRate(Choice):
         return {}
 
     def state(self):
-        out = {"share": np.array([self.share])}
-        for n, (k, path) in enumerate(self.paths.items()):
-            out.update(path.state(f"path{n}"))
-        return out
+        return {"share": np.array([self.share]), **paths_state(self.paths)}

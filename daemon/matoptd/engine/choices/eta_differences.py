@@ -42,7 +42,7 @@ import numpy as np
 from ...settings import differences
 from .. import parameters
 from .base import Choice
-from .settling import Path
+from .settling import restored_paths
 
 # By default the sides take a quarter of the job's spp (settings.DIFFERENCE_SPP): both share
 # their samples, so most noise cancels. On the Table 2 and 3 kinds eta ended as close as at full
@@ -76,7 +76,7 @@ class EtaDifferences(Choice):
         del widths
         self.optimized = [k for k in records if k not in self.widths]
         self.ranges = {k: (r.lo, r.hi) for k, r in records.items()}
-        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.widths)}
+        self.paths = restored_paths(state, self.widths)
         saved = state.get("sparse") if state else None
         self.sparse = int(saved[0]) if saved is not None else 0  # on the kept D alone
         # Per eta and sensor, h D's mean (a list: the sensor's renders) and the differences

@@ -27,7 +27,7 @@ import numpy as np
 from ...engine_api import SMALL
 from .. import parameters
 from .base import HOLD, Choice
-from .settling import SETTLED, WINDOW, Path
+from .settling import SETTLED, WINDOW, paths_state, restored_paths
 
 # Half, not less: held at most a fifth of the job on Table 4 (2026-12-02), eta was released
 # while the medium still swung, climbed to its bound while the medium was dark and stayed
@@ -56,7 +56,7 @@ class EtaHold(Choice):
         self.released = int(saved[0]) if saved is not None else -1  # the iteration; -1: held
         self.records = [records[k] for k in self.etas]
         self._restart()
-        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(self.others)}
+        self.paths = restored_paths(state, self.others)
         self.last = max(1, round(HOLD_SHARE * ctx.settings.iterations))
         self.why = (f"{', '.join(self.etas)} held at its start until "
                     f"{', '.join(self.others)} settle (each nets less than {SETTLED:g} of its "
@@ -87,7 +87,4 @@ class EtaHold(Choice):
             r.schedule_begin = max(self.released, 0)
 
     def state(self):
-        out = {"released": np.array([self.released], np.int64)}
-        for n, path in enumerate(self.paths.values()):
-            out.update(path.state(f"path{n}"))
-        return out
+        return {"released": np.array([self.released], np.int64), **paths_state(self.paths)}

@@ -38,7 +38,7 @@ import numpy as np
 from ...settings import CHOICE_OPTIONS
 from .. import parameters
 from .base import Choice
-from .settling import SETTLED, WINDOW, Path
+from .settling import SETTLED, WINDOW, paths_state, restored_paths
 
 BETA_1 = 0.5
 
@@ -62,7 +62,7 @@ class MediumDamping(Choice):
         # The iteration the pair's decay began from; -1: it still climbs at its full rate
         self.decaying = int(saved[0]) if saved is not None else (-1 if self.settle else 0)
         self.records = list(records.values())
-        self.paths = {k: Path.restored(state, f"path{n}") for n, k in enumerate(sorted(records))}
+        self.paths = restored_paths(state, sorted(records))
         self._decay()
         self.why = (f"Adam's beta_1 {BETA_1:g} in place of 0.9 for {pair} (Dr.Jit's is per "
                     "optimizer: every parameter of the job): with less momentum the pair "
@@ -94,7 +94,4 @@ class MediumDamping(Choice):
     def state(self):
         if not self.on:
             return {}
-        out = {"decaying": np.array([self.decaying], np.int64)}
-        for n, path in enumerate(self.paths.values()):
-            out.update(path.state(f"path{n}"))
-        return out
+        return {"decaying": np.array([self.decaying], np.int64), **paths_state(self.paths)}

@@ -53,3 +53,16 @@ class Path:
         if not state or f"{name}.values" not in state:
             return cls()
         return cls(list(state[f"{name}.values"]), state[f"{name}.rates"].tolist())
+
+
+def restored_paths(state: dict[str, np.ndarray] | None, keys) -> dict[str, Path]:
+    """A Path per key, in the order of ``keys`` (their numbers in a checkpoint's state)."""
+    return {k: Path.restored(state, f"path{n}") for n, k in enumerate(keys)}
+
+
+def paths_state(paths: dict[str, Path]) -> dict[str, np.ndarray]:
+    """The paths of restored_paths as a checkpoint's arrays."""
+    out: dict[str, np.ndarray] = {}
+    for n, path in enumerate(paths.values()):
+        out.update(path.state(f"path{n}"))
+    return out
