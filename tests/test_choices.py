@@ -365,6 +365,12 @@ def test_a_variable_has_settled_once_it_nets_a_small_share_of_its_steps():
     # A checkpoint's arrays give the same path back.
     again = Path.restored(_path(jitter).state("p"), "p")
     assert again.settled() and len(again.values) == WINDOW + 1
+    # A swing's far end: six full steps out and four back net a fifth of the allowed steps
+    # but span 0.6 of them. The net test takes it for settled, the spread test
+    # (medium_damping's) does not; jitter passes both.
+    turn = [0.1 * min(n, 12 - n) for n in range(WINDOW + 1)]
+    assert _path(turn).settled() and not _path(turn).settled(spread=True)
+    assert _path(jitter).settled(spread=True)
 
 
 def _job(stubs, case: ts.Case, iterations: int, **choices: str) -> pb.Job:

@@ -20,9 +20,10 @@ rate from that choice and says how it decays:
 - ``on``: on the schedule from the job's start. The pair comes down slowly and the decay
   stops it early: on the 32 px, 60-iteration analogue of Table 4 in
   tests/test_thesis_tables.py the albedo ended 18% off (the defaults 8-9%).
-- ``settle``: at its full rate until both only jitter (settling.py), then on the schedule
-  from that iteration. The short job passes (10% off) and at max_depth 8 the pair climbs
-  the whole way; with less time left to decay, its last steps are larger.
+- ``settle``: at its full rate until both only jitter (settling.py, by the window's spread:
+  at a swing's far end a variable nets little but spans much), then on the schedule from
+  that iteration. The short job passes (10% off) and at max_depth 8 the pair climbs the
+  whole way; with less time left to decay, its last steps are larger.
 
 Dr.Jit's Adam has one beta_1 per optimizer, so every variable of the job takes it (as
 large_steps' uniform mode); BETA_1 on the pair alone, eta and the interface's width at 0.9,
@@ -67,7 +68,7 @@ class MediumDamping(Choice):
         self.why = (f"Adam's beta_1 {BETA_1:g} in place of 0.9 for {pair} (Dr.Jit's is per "
                     "optimizer: every parameter of the job): with less momentum the pair "
                     "does not swing along the valley it shares; "
-                    + (f"the pair at its full rate until it settles (each nets less than "
+                    + (f"the pair at its full rate until it settles (each spans less than "
                        f"{SETTLED:g} of its full steps over {WINDOW} iterations), then on the "
                        "schedule from there" if self.settle else "the pair on the schedule"))
         if self.settle and self.decaying >= 0:
@@ -78,7 +79,7 @@ class MediumDamping(Choice):
             return {}
         for key, path in self.paths.items():
             path.add(ctx.latent(key), ctx.rate(key))
-        if all(p.settled() for p in self.paths.values()):
+        if all(p.settled(spread=True) for p in self.paths.values()):
             self.decaying = ctx.iteration
             self._decay()
             self.why += f"; settled at iteration {self.decaying}"

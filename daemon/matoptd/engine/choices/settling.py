@@ -34,12 +34,16 @@ class Path:
         self.values = (self.values + [np.asarray(value, np.float64)])[-WINDOW - 1:]
         self.rates = (self.rates + [rate])[-WINDOW - 1:]
 
-    def settled(self) -> bool:
-        """False until WINDOW steps are known."""
+    def settled(self, spread: bool = False) -> bool:
+        """False until WINDOW steps are known. With ``spread`` the window's extent (max - min)
+        stands for the move: a variable turning back at a swing's far end nets little over the
+        window but spans much of it, and jitter spans little."""
         if len(self.values) <= WINDOW:
             return False
         allowed = sum(self.rates[-WINDOW - 1:-1])
-        moved = float(np.max(np.abs(self.values[-1] - self.values[0])))
+        values = np.array(self.values)
+        moved = float(np.max(np.ptp(values, axis=0) if spread
+                             else np.abs(values[-1] - values[0])))
         return allowed <= 0 or moved < SETTLED * allowed
 
     def state(self, name: str) -> dict[str, np.ndarray]:
