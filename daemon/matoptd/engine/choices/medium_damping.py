@@ -22,8 +22,8 @@ rate from that choice and says how it decays:
   tests/test_thesis_tables.py the albedo ended 18% off (the defaults 8-9%).
 - ``settle``: at its full rate until both only jitter (settling.py, by the window's spread:
   at a swing's far end a variable nets little but spans much), then on the schedule from
-  that iteration. The short job passes (10% off) and at max_depth 8 the pair climbs the
-  whole way; with less time left to decay, its last steps are larger.
+  that iteration. The short job passes (10% off): with less time left to decay, the pair's
+  last steps are larger.
 
 Dr.Jit's Adam has one beta_1 per optimizer, so every variable of the job takes it (as
 large_steps' uniform mode); BETA_1 on the pair alone, eta and the interface's width at 0.9,
